@@ -1,0 +1,155 @@
+"""The G-buffer: one splatting pass gives everything deferred shading and the
+geometric losses need (paper Sect. 4.1, Eq. 5, 6, 8)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from core.cameras import Camera
+from core.raster import RasterResult, rasterize
+
+if TYPE_CHECKING:
+    from core.gaussians import Gaussians
+
+
+@dataclass
+class GBuffer:
+    """Per-pixel buffers of one view; all (H, W[, C]) float tensors on one device.
+
+    - ``base``: blended base colour (SH evaluated for this view), (H, W, 3).
+    - ``normal``: blended camera-space normal (OpenCV axes, not normalised), (H, W, 3).
+    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W).
+    - ``w_r``: blended reflection strength in [0, 1], (H, W).
+    - ``alpha``: accumulated opacity, (H, W).
+    - ``depth``: planar z-depth d = D / (N·r̃) (Eq. 8), 0 where invalid, (H, W).
+    - ``depth_valid``: bool (H, W), False where alpha or |N·r̃| is too small.
+    - ``center_depth``: conventional blended centre depth (Eq. 5) divided by alpha
+      where alpha is large enough, 0 elsewhere, (H, W).
+    - ``camera``: the view these buffers belong to.
+    """
+
+    base: Tensor
+    normal: Tensor
+    plane_dist: Tensor
+    w_r: Tensor
+    alpha: Tensor
+    depth: Tensor
+    depth_valid: Tensor
+    center_depth: Tensor
+    camera: Camera
+
+
+# Pixels whose accumulated opacity is below this have no depth (Eq. 5 and Eq. 8).
+MIN_ALPHA = 0.05
+# Pixels whose blended normal is this close to perpendicular to the ray (|cos| below,
+# about 87.1°) have no planar depth: 1/cos amplifies any normal error beyond use.
+MIN_COS = 0.05
+
+_C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
+
+
+def facing_normals_camera(normals_world: Tensor, means: Tensor, camera: Camera) -> Tensor:
+    """Eq. 6 normals in camera space, flipped so each faces the camera (n·μ_cam ≤ 0)."""
+    R = camera.R.to(means)
+    t = camera.t.to(means)
+    n_cam = normals_world @ R.T
+    mu_cam = means @ R.T + t
+    sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
+    return n_cam * sign
+
+
+def planar_depth(
+    normal: Tensor,
+    plane_dist: Tensor,
+    alpha: Tensor,
+    camera: Camera,
+    *,
+    min_alpha: float = MIN_ALPHA,
+    min_cos: float = MIN_COS,
+) -> tuple[Tensor, Tensor]:
+    """Eq. 8 per pixel: d = D / (N·r̃) with r̃ = K⁻¹(u, v, 1); (depth, valid).
+
+    Invalid pixels (low alpha, grazing normal, non-positive or non-finite depth) get
+    depth 0 and no gradient: the division is guarded, never Inf or NaN.
+    """
+    rays = camera.camera_rays(normal.dtype, normal.device)
+    ndotr = (normal * rays).sum(-1)
+    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
+    cos = ndotr.abs() / norm.clamp_min(1e-30)
+    valid = (alpha > min_alpha) & (cos > min_cos) & (norm > 0)
+    safe_den = torch.where(valid, ndotr, torch.ones_like(ndotr))
+    d = plane_dist / safe_den
+    valid = valid & (d > 0) & torch.isfinite(d)
+    depth = torch.where(valid, d, torch.zeros_like(d))
+    return depth, valid
+
+
+def render_gbuffer_tensors(
+    means: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
+    opacities: Tensor,
+    colors: Tensor,
+    normals_world: Tensor,
+    w_r: Tensor,
+    camera: Camera,
+    *,
+    covariances: Tensor | None = None,
+    backend: str = "auto",
+    min_alpha: float = MIN_ALPHA,
+    min_cos: float = MIN_COS,
+) -> tuple[GBuffer, RasterResult]:
+    """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
+
+    ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
+    are Eq. 6 normals (any sign: they are flipped toward the camera here).
+    """
+    n_cam = facing_normals_camera(normals_world, means, camera)
+    R = camera.R.to(means)
+    t = camera.t.to(means)
+    mu_cam = means @ R.T + t
+    D = (n_cam * mu_cam).sum(-1, keepdim=True)
+    feats = torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+    res = rasterize(
+        means, quats, scales, opacities, feats, camera, covariances=covariances, backend=backend
+    )
+    f, alpha = res.features, res.alpha
+    normal = f[..., _C_NORMAL]
+    plane = f[..., _C_PLANE]
+    depth, valid = planar_depth(normal, plane, alpha, camera, min_alpha=min_alpha, min_cos=min_cos)
+    covered = alpha > min_alpha
+    center = torch.where(covered, f[..., _C_Z] / torch.where(covered, alpha, 1.0), 0.0)
+    gb = GBuffer(
+        base=f[..., _C_BASE],
+        normal=normal,
+        plane_dist=plane,
+        w_r=f[..., _C_WR],
+        alpha=alpha,
+        depth=depth,
+        depth_valid=valid,
+        center_depth=center,
+        camera=camera,
+    )
+    return gb, res
+
+
+def render_gbuffer(
+    gaussians: Gaussians, camera: Camera, *, sh_degree: int, backend: str = "auto", **kw
+) -> tuple[GBuffer, RasterResult]:
+    """G-buffer of a Gaussian model for one view (SH evaluated toward this camera)."""
+    return render_gbuffer_tensors(
+        gaussians.params["means"],
+        gaussians.unit_quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.colors(camera, sh_degree),
+        gaussians.normals(),
+        gaussians.w_r,
+        camera,
+        backend=backend,
+        **kw,
+    )

@@ -1,0 +1,133 @@
+"""One rasteriser interface, several backends.
+
+``rasterize`` splats N Gaussians with arbitrary per-Gaussian feature channels for
+one camera and returns blended features (H, W, C) and alpha (H, W), plus the
+screen-space means whose gradient drives densification. Backends differ only in
+how they composite; projection (EWA, low-pass) and tile binning are shared.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from core.cameras import Camera
+from core.errors import BackendUnavailableError
+from core.raster.binning import TileBins, bin_gaussians
+from core.raster.projection import (
+    Projected,
+    covariances_from,
+    project_gaussians,
+    quats_to_rotmat,
+)
+from core.raster.reference import rasterize_reference
+
+__all__ = [
+    "BACKENDS",
+    "TileBins",
+    "bin_gaussians",
+    "Projected",
+    "RasterResult",
+    "available_backends",
+    "covariances_from",
+    "project_gaussians",
+    "quats_to_rotmat",
+    "rasterize",
+    "register_backend",
+    "resolve_backend",
+]
+
+
+@dataclass
+class RasterResult:
+    """Output of one splatting pass.
+
+    ``features`` (H, W, C) are blended without background (premultiplied by
+    coverage); ``alpha`` (H, W) is the accumulated opacity. ``means2d`` (N, 2) are the
+    projected centres: call ``retain_grad()`` before backward to read the view-space
+    positional gradient (densification). ``radii`` (N,) is 0 for culled Gaussians.
+    """
+
+    features: Tensor
+    alpha: Tensor
+    means2d: Tensor
+    radii: Tensor
+    depths: Tensor
+    backend: str
+
+
+# name -> (is_available(device) -> str | None (reason when unavailable), composite fn)
+_Composite = Callable[..., tuple[Tensor, Tensor]]
+BACKENDS: dict[str, tuple[Callable[[torch.device], str | None], _Composite]] = {}
+
+
+def register_backend(
+    name: str, available: Callable[[torch.device], str | None], fn: _Composite
+) -> None:
+    """Add a compositing backend; ``available`` returns None or why it cannot run."""
+    BACKENDS[name] = (available, fn)
+
+
+register_backend("reference", lambda device: None, rasterize_reference)
+
+
+def available_backends(device: torch.device | str = "cpu") -> list[str]:
+    device = torch.device(device)
+    return [n for n, (ok, _) in BACKENDS.items() if ok(device) is None]
+
+
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """Turn 'auto' into a concrete backend; raise if a named one cannot run here."""
+    device = torch.device(device)
+    if backend == "auto":
+        preferred = ["cuda", "reference"] if device.type == "cuda" else ["cpu", "reference"]
+        for name in preferred:
+            if name in BACKENDS and BACKENDS[name][0](device) is None:
+                return name
+        return "reference"
+    if backend not in BACKENDS:
+        known = ", ".join(["auto", *BACKENDS])
+        raise BackendUnavailableError(f"unknown rasteriser backend '{backend}' (known: {known})")
+    reason = BACKENDS[backend][0](device)
+    if reason is not None:
+        raise BackendUnavailableError(f"rasteriser backend '{backend}' is unavailable: {reason}")
+    return backend
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
+    opacities: Tensor,
+    features: Tensor,
+    camera: Camera,
+    *,
+    covariances: Tensor | None = None,
+    backend: str = "auto",
+    near: float = 0.01,
+    far: float = 1e10,
+    eps2d: float = 0.3,
+    tile_size: int = 16,
+) -> RasterResult:
+    """Splat Gaussians for one camera.
+
+    Shapes: means (N, 3) world; quats (N, 4) wxyz; scales (N, 3) positive (not log);
+    opacities (N,) in [0, 1]; features (N, C). ``covariances`` (N, 3, 3), when given,
+    replaces quats/scales (full-covariance ablation and tests).
+    """
+    if covariances is None:
+        if quats is None or scales is None:
+            raise ValueError("rasterize needs quats and scales, or covariances")
+        covariances = covariances_from(quats, scales)
+    if features.ndim != 2 or features.shape[0] != means.shape[0]:
+        raise ValueError(f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}")
+    name = resolve_backend(backend, means.device)
+    W, H = camera.width, camera.height
+    proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
+    bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
+    fn = BACKENDS[name][1]
+    feats, alpha = fn(proj, opacities, features, bins, W, H)
+    return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)

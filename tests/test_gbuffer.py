@@ -1,0 +1,117 @@
+"""G-buffer and planar depth (Eq. 8) on analytic single-plane cases."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from core.gbuffer import MIN_ALPHA, MIN_COS, planar_depth, render_gbuffer_tensors
+from tests.helpers import identity_camera, rot_y, rotmat_y
+
+
+def _flat_gaussian(deg: float, dtype, center=(0.05, -0.03, 2.0), opacity=0.95):
+    means = torch.tensor([center], dtype=dtype)
+    quats = rot_y(deg, dtype)
+    scales = torch.tensor([[0.4, 0.3, 1e-7]], dtype=dtype)
+    op = torch.tensor([opacity], dtype=dtype)
+    colors = torch.tensor([[0.2, 0.4, 0.6]], dtype=dtype)
+    normal = (rotmat_y(deg, dtype) @ torch.tensor([0.0, 0.0, 1.0], dtype=dtype))[None]
+    w_r = torch.tensor([0.3], dtype=dtype)
+    return means, quats, scales, op, colors, normal, w_r
+
+
+def _analytic(cam, means, normal, dtype):
+    """z-depth of the ray–plane intersection and |cos(ray, normal)| per pixel."""
+    rays = cam.camera_rays(dtype)
+    n = normal[0]
+    ndotr = rays @ n
+    depth = (n @ means[0]) / ndotr
+    cos = ndotr.abs() / rays.norm(dim=-1)
+    return depth, cos
+
+
+@pytest.mark.parametrize("deg", [0.0, 60.0])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_planar_depth_is_exact_ray_plane_depth(deg, dtype):
+    cam = identity_camera(48)
+    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(deg, dtype)
+    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    truth, cos = _analytic(cam, means, normal, dtype)
+    covered = gb.alpha > MIN_ALPHA
+    assert covered.sum() > 50
+    assert torch.equal(gb.depth_valid, covered & (cos > MIN_COS))
+    v = gb.depth_valid
+    rel = ((gb.depth[v] - truth[v]) / truth[v]).abs().max().item()
+    assert rel < 1e-4
+    # Normal channel: the camera-facing plane normal, times alpha.
+    n_unit = gb.normal[v] / gb.alpha[v, None]
+    torch.testing.assert_close(n_unit, (-normal).expand_as(n_unit), rtol=1e-4, atol=1e-4)
+    assert torch.all(gb.depth[~v] == 0)
+
+
+def test_center_depth_eq5_is_biased_on_tilted_plane():
+    dtype = torch.float64
+    cam = identity_camera(48)
+    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(60.0, dtype)
+    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    truth, _ = _analytic(cam, means, normal, dtype)
+    v = gb.depth_valid
+    # Eq. 5 gives the centre's z everywhere: off by far more than Eq. 8's 1e-4.
+    torch.testing.assert_close(gb.center_depth[v], torch.full_like(truth[v], 2.0))
+    bias = ((gb.center_depth[v] - truth[v]) / truth[v]).abs().max().item()
+    assert bias > 0.05
+
+
+def test_grazing_plane_is_masked_not_inf():
+    dtype = torch.float32
+    cam = identity_camera(32)
+    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(89.0, dtype, center=(0.0, 0.0, 2.0))
+    for t in (means, quats, scales, op):
+        t.requires_grad_(True)
+    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    covered = gb.alpha > MIN_ALPHA
+    assert covered.any()
+    assert not gb.depth_valid[covered].any()  # every covered pixel is grazing: masked
+    assert torch.isfinite(gb.depth).all() and torch.isfinite(gb.center_depth).all()
+    (gb.depth.sum() + gb.normal.sum() + gb.alpha.sum()).backward()
+    for t in (means, quats, scales, op):
+        assert torch.isfinite(t.grad).all()
+
+
+def test_planar_depth_guard_on_zero_normals():
+    cam = identity_camera(8)
+    normal = torch.zeros(8, 8, 3, requires_grad=True)
+    plane = torch.full((8, 8), -2.0, requires_grad=True)
+    alpha = torch.ones(8, 8)
+    depth, valid = planar_depth(normal, plane, alpha, cam)
+    assert not valid.any() and torch.equal(depth, torch.zeros(8, 8))
+    depth.sum().backward()
+    assert torch.isfinite(normal.grad).all() and torch.isfinite(plane.grad).all()
+
+
+def test_gbuffer_gradients_match_finite_differences():
+    dtype = torch.float64
+    cam = identity_camera(10, f=12.0)
+    g = torch.Generator().manual_seed(4)
+    means = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.05, 2.2], [-0.1, 0.0, 2.4]], dtype=dtype)
+    quats = torch.randn(3, 4, generator=g, dtype=dtype) * 0.2 + torch.tensor([1.0, 0, 0, 0], dtype=dtype)
+    scales = torch.tensor([[0.3, 0.25, 1e-3], [0.2, 0.3, 1e-3], [0.3, 0.3, 1e-3]], dtype=dtype)
+    op = torch.tensor([0.6, 0.5, 0.7], dtype=dtype)
+    colors = torch.rand(3, 3, generator=g, dtype=dtype)
+    w_r = torch.rand(3, generator=g, dtype=dtype)
+    wts = torch.rand(10, 10, 6, generator=g, dtype=dtype)
+
+    def f(means, quats, op, colors, w_r):
+        from core.raster import quats_to_rotmat
+
+        normals = quats_to_rotmat(quats)[:, :, 2]
+        gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normals, w_r, cam, backend="reference")
+        return (
+            (gb.depth * wts[..., 0]).sum()
+            + (gb.base * wts[..., 1:4]).sum()
+            + (gb.w_r * wts[..., 4]).sum()
+            + (gb.normal[..., 2] * wts[..., 5]).sum()
+        )
+
+    inputs = [t.clone().requires_grad_(True) for t in (means, quats, op, colors, w_r)]
+    assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
