@@ -1,0 +1,74 @@
+"""Shared benchmark helpers: random scenes, timing, peak memory per case."""
+
+from __future__ import annotations
+
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from datetime import date
+
+import torch
+
+from core.cameras import Camera, Intrinsics
+
+
+def random_gaussians(n: int, seed: int = 0, device: str = "cpu", channels: int = 8):
+    """A blob of n Gaussians in front of a camera at distance 3, roughly image-filling."""
+    g = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=g) * 0.45
+    quats = torch.randn(n, 4, generator=g)
+    scales = torch.rand(n, 3, generator=g) * 0.03 + 0.005
+    scales[:, 2] *= 0.05  # flat, as PGSR-DR drives them
+    opac = torch.rand(n, generator=g) * 0.8 + 0.1
+    feats = torch.rand(n, channels, generator=g)
+    return [t.to(device) for t in (means, quats, scales, opac, feats)]
+
+
+def bench_camera(size: int) -> Camera:
+    intr = Intrinsics.from_fov_x(0.69, size, size)
+    return Camera.look_at([0.0, -3.0, 0.5], [0, 0, 0], [0, 0, 1], intr)
+
+
+def median_time(fn: Callable[[], object], warmup: int = 1, repeat: int = 5, sync=None) -> float:
+    """Median wall time in seconds over ``repeat`` runs after ``warmup`` runs."""
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeat):
+        if sync:
+            sync()
+        t0 = time.perf_counter()
+        fn()
+        if sync:
+            sync()
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def run_isolated(module: str, case: dict) -> dict:
+    """Run one case in a fresh interpreter so its peak RSS is its own."""
+    proc = subprocess.run(
+        [sys.executable, "-m", module, "--case", json.dumps(case)],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    if proc.returncode != 0:
+        return {**case, "error": proc.stderr.strip().splitlines()[-1] if proc.stderr else "failed"}
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def peak_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def machine_line() -> str:
+    return (
+        f"{platform.machine()}, {torch.get_num_threads()} torch threads, "
+        f"torch {torch.__version__}, {date.today().isoformat()}"
+    )

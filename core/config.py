@@ -1,0 +1,171 @@
+"""Every training knob in one validated model, loadable from YAML or JSON.
+
+Iteration marks (phases, densification, SH degree) are given for the paper's
+30k-iteration schedule and scale in proportion when ``iterations`` differs, so a
+short CPU run keeps the same shape as the full one.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from core.errors import GlintError
+
+REFERENCE_ITERATIONS = 30_000
+
+
+class ConfigError(GlintError):
+    """A config file or value is invalid; the message names the file and field."""
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class Phases(_Strict):
+    """Marks on the paper's 30k schedule (scaled to the run's length)."""
+
+    geometry_start: int = Field(3_000, ge=0, description="single-view loss and env map on")
+    multiview_start: int = Field(7_000, ge=0, description="multi-view loss on")
+    sh_full_start: int = Field(10_000, ge=0, description="SH degree 0 until here, then max")
+
+    @model_validator(mode="after")
+    def _ordered(self) -> Phases:
+        if self.multiview_start < self.geometry_start:
+            raise ValueError("multiview_start must be >= geometry_start")
+        return self
+
+
+class LossWeights(_Strict):
+    """Eq. 15–16 weights and the multi-view thresholds."""
+
+    l1: float = Field(0.8, ge=0, le=1, description="L_rgb = l1·L1 + (1 - l1)·D-SSIM")
+    scale: float = Field(100.0, ge=0, description="λ2, Eq. 7")
+    single_view: float = Field(0.2, ge=0, description="λ3, Eq. 11")
+    multi_view: float = Field(0.1, ge=0, description="λ4, Eq. 14")
+    multiview_max_angle_deg: float = Field(30.0, gt=0, le=180)
+    multiview_max_error_px: float = Field(1.0, gt=0)
+    multiview_pixels: int = Field(4096, ge=16, description="pixels sampled per multi-view step")
+
+
+class LearningRates(_Strict):
+    """Adam learning rates (3DGS defaults); positions scale with the scene radius."""
+
+    means_init: float = Field(1.6e-4, gt=0)
+    means_final: float = Field(1.6e-6, gt=0)
+    sh_dc: float = Field(2.5e-3, gt=0)
+    sh_rest: float = Field(2.5e-3 / 20, gt=0)
+    opacity: float = Field(0.025, gt=0)
+    scales: float = Field(5e-3, gt=0)
+    quats: float = Field(1e-3, gt=0)
+    refl: float = Field(0.01, gt=0)
+    envmap: float = Field(0.01, gt=0)
+
+
+class Densification(_Strict):
+    """3DGS adaptive density control (marks on the 30k schedule)."""
+
+    enabled: bool = True
+    start: int = Field(500, ge=0)
+    stop: int = Field(15_000, ge=0)
+    interval: int = Field(100, ge=1)
+    grad_threshold: float = Field(2e-4, gt=0, description="mean view-space gradient, NDC units")
+    percent_dense: float = Field(0.01, gt=0, description="clone below, split above (× radius)")
+    prune_opacity: float = Field(0.005, ge=0, lt=1)
+    opacity_reset_interval: int = Field(3_000, ge=0, description="0 disables")
+    max_screen_size: float = Field(0.15, gt=0, description="prune when 2D radius > this × image")
+    max_gaussians: int = Field(300_000, ge=1)
+
+
+class Ablation(_Strict):
+    """Switches of the paper's Table 3/4 (all on = the full method)."""
+
+    deferred_shading: bool = True
+    planar_depth: bool = Field(True, description="False: conventional blended depth (Eq. 5)")
+    single_view: bool = True
+    multi_view: bool = True
+    planar: bool = Field(True, description="False: full covariance (no scale loss)")
+
+
+class Evaluation(_Strict):
+    every: int = Field(0, ge=0, description="iterations between evaluations; 0 = ~20 per run")
+    views: int = Field(4, ge=1, description="held-out views evaluated at each cadence point")
+
+
+class TrainConfig(_Strict):
+    """The whole training configuration."""
+
+    iterations: int = Field(30_000, ge=1)
+    seed: int = 0
+    device: str = "cpu"
+    backend: Literal["auto", "reference", "cpu", "cuda"] = "auto"
+    resolution_scale: float = Field(1.0, gt=0, le=1, description="downscale images on load")
+    background: Literal["white", "black", "random"] | list[float] = "white"
+    sh_degree: int = Field(3, ge=0, le=3)
+    envmap_resolution: int = Field(128, ge=4, le=2048)
+    init_points: int = Field(20_000, ge=1, description="random init when the scene has no cloud")
+    init_opacity: float = Field(0.1, gt=0, lt=1)
+    init_refl: float = Field(0.05, ge=0, lt=1)
+    phases: Phases = Phases()
+    loss: LossWeights = LossWeights()
+    lr: LearningRates = LearningRates()
+    densify: Densification = Densification()
+    ablation: Ablation = Ablation()
+    eval: Evaluation = Evaluation()
+    checkpoint_every: int = Field(0, ge=0, description="iterations; 0 = ~5 per run + phase ends")
+    plan_overrides: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("background")
+    @classmethod
+    def _bg(cls, v: Any) -> Any:
+        if isinstance(v, list):
+            if len(v) != 3 or not all(0.0 <= float(x) <= 1.0 for x in v):
+                raise ValueError("background as a list must be 3 values in [0, 1]")
+        return v
+
+    def scaled(self, mark: int) -> int:
+        """A mark on the 30k schedule mapped onto this run's length."""
+        return round(mark * self.iterations / REFERENCE_ITERATIONS)
+
+
+def _format_errors(exc: ValidationError, source: str) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"]) or "(root)"
+        lines.append(f"{source}: field '{loc}': {err['msg']}")
+    return "\n".join(lines)
+
+
+def config_from_dict(data: dict[str, Any], source: str = "config") -> TrainConfig:
+    try:
+        return TrainConfig.model_validate(data)
+    except ValidationError as exc:
+        raise ConfigError(_format_errors(exc, source)) from None
+
+
+def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> TrainConfig:
+    """Read YAML/JSON (or defaults when ``path`` is None) and apply dotted overrides."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"{path}: config file not found")
+        text = path.read_text()
+        try:
+            data = json.loads(text) if path.suffix == ".json" else yaml.safe_load(text) or {}
+        except (json.JSONDecodeError, yaml.YAMLError) as exc:
+            raise ConfigError(f"{path}: cannot parse: {exc}") from None
+        if not isinstance(data, dict):
+            raise ConfigError(f"{path}: expected a mapping at the top level")
+    for key, value in (overrides or {}).items():
+        node = data
+        parts = key.split(".")
+        for p in parts[:-1]:
+            node = node.setdefault(p, {})
+        node[parts[-1]] = value
+    return config_from_dict(data, str(path) if path else "config")

@@ -1,0 +1,171 @@
+"""Training losses of PGSR-DR (Eq. 7, 10–15), each a pure function with a test."""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.cameras import Camera
+
+_SSIM_C1 = 0.01**2
+_SSIM_C2 = 0.03**2
+
+
+def _gaussian_window(size: int, sigma: float, channels: int, like: Tensor) -> Tensor:
+    x = torch.arange(size, dtype=like.dtype, device=like.device) - (size - 1) / 2
+    g = torch.exp(-(x**2) / (2 * sigma**2))
+    g = g / g.sum()
+    w = torch.outer(g, g)
+    return w.expand(channels, 1, size, size).contiguous()
+
+
+def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of two (H, W, C) images, 3DGS's variant: 11×11 Gaussian, zero padding."""
+    x = img.permute(2, 0, 1)[None]
+    y = ref.permute(2, 0, 1)[None]
+    c = x.shape[1]
+    w = _gaussian_window(window, sigma, c, x)
+    pad = window // 2
+    mu_x = F.conv2d(x, w, padding=pad, groups=c)
+    mu_y = F.conv2d(y, w, padding=pad, groups=c)
+    sxx = F.conv2d(x * x, w, padding=pad, groups=c) - mu_x**2
+    syy = F.conv2d(y * y, w, padding=pad, groups=c) - mu_y**2
+    sxy = F.conv2d(x * y, w, padding=pad, groups=c) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * sxy + _SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + _SSIM_C1) * (sxx + syy + _SSIM_C2)
+    return (num / den).mean()
+
+
+def rgb_loss(img: Tensor, ref: Tensor, l1_weight: float = 0.8) -> Tensor:
+    """Eq. 15: l1_weight·L1 + (1 − l1_weight)·(1 − SSIM)."""
+    l1 = (img - ref).abs().mean()
+    if l1_weight >= 1.0:
+        return l1
+    return l1_weight * l1 + (1.0 - l1_weight) * (1.0 - ssim(img, ref))
+
+
+def scale_loss(scales: Tensor) -> Tensor:
+    """Eq. 7: mean of each Gaussian's smallest scale (drives them flat)."""
+    if scales.numel() == 0:
+        return scales.sum()
+    return scales.min(dim=-1).values.mean()
+
+
+def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:
+    """Camera-space points (H, W, 3) = z-depth · K⁻¹(u, v, 1)."""
+    return depth[..., None] * camera.camera_rays(depth.dtype, depth.device)
+
+
+def normals_from_depth(depth: Tensor, valid: Tensor, camera: Camera) -> tuple[Tensor, Tensor]:
+    """Eq. 10: unit camera-space normals from central differences of back-projected points.
+
+    Returns (normals (H, W, 3) facing the camera, valid (H, W)); a pixel is valid when
+    it and its four neighbours have depth and the cross product is not degenerate.
+    Border pixels are invalid.
+    """
+    P = depth_to_points(depth, camera)
+    H, W = depth.shape
+    n = torch.zeros_like(P)
+    ok = torch.zeros_like(valid)
+    if H < 3 or W < 3:
+        return n, ok
+    du = P[1:-1, 2:] - P[1:-1, :-2]
+    dv = P[2:, 1:-1] - P[:-2, 1:-1]
+    cross = torch.linalg.cross(dv, du)
+    norm = cross.norm(dim=-1, keepdim=True)
+    v = valid[1:-1, 1:-1] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
+    v = v & (norm[..., 0] > 1e-12)
+    nn = cross / torch.where(norm > 1e-12, norm, torch.ones_like(norm))
+    # Face the camera: a normal seen from the camera satisfies n·P < 0.
+    facing = (nn * P[1:-1, 1:-1]).sum(-1, keepdim=True) <= 0
+    nn = torch.where(facing, nn, -nn)
+    n = F.pad(nn.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+    ok = F.pad(v, (1, 1, 1, 1))
+    return n, ok
+
+
+def single_view_loss(
+    rendered_normal: Tensor, depth: Tensor, valid: Tensor, camera: Camera
+) -> Tensor:
+    """Eq. 11: mean over valid pixels of 1 − n·N (rendered vs depth-derived normal)."""
+    N, ok = normals_from_depth(depth, valid, camera)
+    if not bool(ok.any()):
+        return rendered_normal.sum() * 0.0
+    n = rendered_normal[ok]
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    return (1.0 - (n * N[ok]).sum(-1)).mean()
+
+
+def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """Sample (H, W) ``img`` at pixel coordinates ``uv`` (M, 2) (centres at +0.5).
+
+    Returns (values (M,), inside (M,)); ``inside`` means within the pixel-centre hull.
+    """
+    H, W = img.shape
+    x = uv[:, 0] - 0.5
+    y = uv[:, 1] - 0.5
+    finite = torch.isfinite(x) & torch.isfinite(y)
+    x = torch.where(finite, x, torch.zeros_like(x))
+    y = torch.where(finite, y, torch.zeros_like(y))
+    inside = finite & (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
+    x0i = torch.floor(x).clamp(0, max(W - 2, 0)).long()
+    y0i = torch.floor(y).clamp(0, max(H - 2, 0)).long()
+    fx = (x - x0i.to(x.dtype)).clamp(0, 1)
+    fy = (y - y0i.to(y.dtype)).clamp(0, 1)
+    flat = img.reshape(-1)
+    i00 = y0i * W + x0i
+    v00, v01 = flat[i00], flat[i00 + 1]
+    v10, v11 = flat[i00 + W], flat[i00 + W + 1]
+    val = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+    return val, inside
+
+
+def multi_view_loss(
+    depth_ref: Tensor,
+    valid_ref: Tensor,
+    cam_ref: Camera,
+    depth_nb: Tensor,
+    valid_nb: Tensor,
+    cam_nb: Camera,
+    *,
+    max_error_px: float = 1.0,
+    n_pixels: int | None = None,
+    generator: torch.Generator | None = None,
+) -> tuple[Tensor, dict[str, float]]:
+    """Eq. 12–14: forward–backward reprojection error between two depth maps.
+
+    A reference pixel p_r is lifted with its depth (Eq. 12), projected into the
+    neighbour (Eq. 13), lifted again with the neighbour's bilinearly sampled depth,
+    and projected back to p̃_r. The loss is the mean of ‖p_r − p̃_r‖ over pixels
+    whose error is at most ``max_error_px`` (larger errors are occlusions or
+    mismatches, excluded as in the paper). Returns (loss, stats).
+    """
+    dtype, device = depth_ref.dtype, depth_ref.device
+    idx = valid_ref.reshape(-1).nonzero()[:, 0]
+    if n_pixels is not None and idx.numel() > n_pixels:
+        pick = torch.randperm(idx.numel(), generator=generator, device="cpu")[:n_pixels]
+        idx = idx[pick.to(device)]
+    zero = depth_ref.sum() * 0.0
+    if idx.numel() == 0:
+        return zero, {"pixels": 0.0, "kept": 0.0}
+    W = depth_ref.shape[1]
+    uv_r = torch.stack([(idx % W).to(dtype) + 0.5, (idx // W).to(dtype) + 0.5], dim=-1)
+    d_r = depth_ref.reshape(-1)[idx]
+    P = cam_ref.backproject(uv_r, d_r)
+    uv_n, z_n = cam_nb.project(P)
+    d_n, inside = bilinear_lookup(depth_nb, uv_n)
+    v_n, _ = bilinear_lookup(valid_nb.to(dtype), uv_n)
+    ok = inside & (z_n > 0) & (v_n > 0.999) & (d_n > 0)
+    d_n = torch.where(ok, d_n, torch.ones_like(d_n))
+    uv_n_safe = torch.where(ok[:, None], uv_n, torch.zeros_like(uv_n))
+    P2 = cam_nb.backproject(uv_n_safe, d_n)
+    uv_back, z_back = cam_ref.project(P2)
+    ok = ok & (z_back > 0)
+    # sqrt(·+1e-12): the norm's gradient is undefined at exactly zero error.
+    err = ((uv_back - uv_r) ** 2).sum(-1).add(1e-12).sqrt()
+    keep = ok & torch.isfinite(err) & (err <= max_error_px)
+    stats = {"pixels": float(idx.numel()), "kept": float(keep.sum())}
+    if not bool(keep.any()):
+        return zero, stats
+    return err[keep].mean(), stats

@@ -1,0 +1,122 @@
+"""Losses: SSIM/L1, scale loss, depth-derived normals, single- and multi-view terms."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from core.cameras import Camera, Intrinsics
+from core.losses import (
+    bilinear_lookup,
+    multi_view_loss,
+    normals_from_depth,
+    rgb_loss,
+    scale_loss,
+    single_view_loss,
+    ssim,
+)
+from tests.helpers import identity_camera, rotmat_y
+
+
+def test_ssim_identity_and_noise():
+    g = torch.Generator().manual_seed(0)
+    img = torch.rand(24, 24, 3, generator=g)
+    assert ssim(img, img).item() == torch.tensor(1.0).item()
+    noisy = (img + 0.2 * torch.randn(24, 24, 3, generator=g)).clamp(0, 1)
+    s = ssim(noisy, img).item()
+    assert 0.0 < s < 0.95
+    assert abs(ssim(img, noisy).item() - s) < 1e-6  # symmetric
+    assert rgb_loss(img, img).item() == 0.0
+    assert rgb_loss(noisy, img, 1.0).item() == (noisy - img).abs().mean().item()
+
+
+def test_scale_loss_is_mean_smallest_scale():
+    s = torch.tensor([[1.0, 0.1, 2.0], [0.5, 0.5, 0.3]])
+    assert math.isclose(scale_loss(s).item(), (0.1 + 0.3) / 2, rel_tol=1e-6)
+
+
+def _plane_depth(cam: Camera, n: torch.Tensor, point: torch.Tensor) -> torch.Tensor:
+    rays = cam.camera_rays(torch.float64)
+    return (n @ point) / (rays @ n)
+
+
+def test_normals_from_depth_recover_tilted_plane():
+    cam = identity_camera(32)
+    n = rotmat_y(35.0) @ torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    depth = _plane_depth(cam, n, torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))
+    valid = torch.ones(32, 32, dtype=torch.bool)
+    N, ok = normals_from_depth(depth, valid, cam)
+    assert ok[1:-1, 1:-1].all() and not ok[0].any() and not ok[:, -1].any()
+    torch.testing.assert_close(N[ok], n.expand(int(ok.sum()), 3), atol=1e-9, rtol=0)
+    # Holes in the depth invalidate their neighbours too.
+    valid[10, 10] = False
+    _, ok2 = normals_from_depth(depth, valid, cam)
+    assert not ok2[10, 11] and not ok2[11, 10] and ok2[12, 12]
+
+
+def test_single_view_loss_zero_when_consistent_one_when_perpendicular():
+    cam = identity_camera(16)
+    n = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    depth = torch.full((16, 16), 2.0, dtype=torch.float64)
+    valid = torch.ones(16, 16, dtype=torch.bool)
+    rendered = n.expand(16, 16, 3) * 0.7  # blended normals are not unit length
+    assert single_view_loss(rendered, depth, valid, cam).item() < 1e-12
+    perp = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64).expand(16, 16, 3)
+    assert abs(single_view_loss(perp, depth, valid, cam).item() - 1.0) < 1e-12
+    none = torch.zeros(16, 16, dtype=torch.bool)
+    assert single_view_loss(rendered, depth, none, cam).item() == 0.0
+
+
+def test_bilinear_lookup():
+    img = torch.arange(20, dtype=torch.float64).reshape(4, 5)
+    uv = torch.tensor([[0.5, 0.5], [1.5, 0.5], [1.0, 1.0], [4.5, 3.5], [4.6, 1.0], [float("nan"), 1.0]])
+    v, inside = bilinear_lookup(img, uv.double())
+    assert inside.tolist() == [True, True, True, True, False, False]
+    torch.testing.assert_close(v[:4], torch.tensor([0.0, 1.0, 3.0, 19.0], dtype=torch.float64))
+
+
+def _two_views():
+    intr = Intrinsics(30.0, 30.0, 16.3, 15.8, 32, 32)
+    ref = Camera.look_at([0.0, 0.0, -4.0], [0, 0, 0], [0, -1, 0], intr, "ref")
+    eye = torch.tensor([math.sin(math.radians(20)) * 4, 0.0, -math.cos(math.radians(20)) * 4])
+    nb = Camera.look_at(eye, [0, 0, 0], [0, -1, 0], intr, "nb")
+    return ref, nb
+
+
+def _plane_depth_world(cam: Camera, n_world: torch.Tensor, p_world: torch.Tensor) -> torch.Tensor:
+    n_cam = cam.R @ n_world
+    p_cam = cam.R @ p_world + cam.t
+    return _plane_depth(cam, n_cam, p_cam)
+
+
+def test_multi_view_loss_zero_on_consistent_depths_and_positive_otherwise():
+    ref, nb = _two_views()
+    n = torch.tensor([0.2, 0.1, -1.0], dtype=torch.float64)
+    n = n / n.norm()
+    p = torch.zeros(3, dtype=torch.float64)
+    d_ref = _plane_depth_world(ref, n, p)
+    d_nb = _plane_depth_world(nb, n, p)
+    ones = torch.ones(32, 32, dtype=torch.bool)
+    loss, stats = multi_view_loss(d_ref, ones, ref, d_nb, ones, nb)
+    # Not exactly 0: depth of a tilted plane is not bilinear in (u, v) (1/depth is).
+    assert loss.item() < 1e-3 and stats["kept"] > 500
+    # A neighbour depth off by 2% gives a sub-pixel error that counts...
+    loss2, st2 = multi_view_loss(d_ref, ones, ref, d_nb * 1.02, ones, nb)
+    assert loss2.item() > 0.05 and st2["kept"] > 0.5 * stats["kept"]
+    # ...while a gross error (> 1 px everywhere) is excluded, not averaged in.
+    loss3, st3 = multi_view_loss(d_ref, ones, ref, d_nb * 1.5, ones, nb)
+    assert st3["kept"] < 0.05 * stats["kept"]
+    assert loss3.item() <= 1.0
+
+
+def test_multi_view_loss_gradients_finite_and_flow_to_both_depths():
+    ref, nb = _two_views()
+    n = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    d_ref = _plane_depth_world(ref, n, torch.zeros(3, dtype=torch.float64)).requires_grad_(True)
+    d_nb = (_plane_depth_world(nb, n, torch.zeros(3, dtype=torch.float64)) * 1.01).requires_grad_(True)
+    ones = torch.ones(32, 32, dtype=torch.bool)
+    loss, _ = multi_view_loss(d_ref, ones, ref, d_nb, ones, nb, n_pixels=200, generator=torch.Generator().manual_seed(0))
+    loss.backward()
+    assert torch.isfinite(d_ref.grad).all() and torch.isfinite(d_nb.grad).all()
+    assert d_ref.grad.abs().sum() > 0 and d_nb.grad.abs().sum() > 0
