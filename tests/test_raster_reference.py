@@ -9,7 +9,13 @@ import torch
 
 from core.cameras import Camera, Intrinsics
 from core.errors import BackendUnavailableError
-from core.raster import bin_gaussians, covariances_from, project_gaussians, rasterize, resolve_backend
+from core.raster import (
+    bin_gaussians,
+    covariances_from,
+    project_gaussians,
+    rasterize,
+    resolve_backend,
+)
 from core.raster.projection import ALPHA_MAX
 from tests.helpers import identity_camera
 
@@ -83,7 +89,9 @@ def test_backend_selection_errors():
 
 def _random_scene(n: int, seed: int, dtype=torch.float64):
     g = torch.Generator().manual_seed(seed)
-    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.3 + torch.tensor([0, 0, 3.0], dtype=dtype)
+    means = torch.randn(n, 3, generator=g, dtype=dtype) * 0.3 + torch.tensor(
+        [0, 0, 3.0], dtype=dtype
+    )
     quats = torch.randn(n, 4, generator=g, dtype=dtype)
     scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.15 + 0.05
     op = torch.rand(n, generator=g, dtype=dtype) * 0.6 + 0.2
@@ -120,7 +128,9 @@ def test_projection_matches_camera_project():
     intr = Intrinsics(40.0, 42.0, 17.3, 14.1, 32, 30)
     cam = Camera.look_at([1.0, 2.0, -3.0], [0, 0, 0], [0, -1, 0], intr)
     pts = torch.randn(20, 3, dtype=torch.float64) * 0.3
-    covs = covariances_from(torch.randn(20, 4, dtype=torch.float64), torch.full((20, 3), 0.01, dtype=torch.float64))
+    covs = covariances_from(
+        torch.randn(20, 4, dtype=torch.float64), torch.full((20, 3), 0.01, dtype=torch.float64)
+    )
     p = project_gaussians(pts, covs, cam)
     uv, z = cam.project(pts)
     torch.testing.assert_close(p.means2d, uv)
@@ -132,7 +142,6 @@ def test_memory_bounded_chunking_gives_same_result():
     # float64: in float32 the rounding of T can flip the 1e-4 termination test.
     means, quats, scales, op, feats = _random_scene(300, 5, torch.float64)
     r1 = rasterize(means, quats, scales, op, feats, cam, backend="reference")
-    from core.raster import BACKENDS, bin_gaussians  # noqa: F401  (internal check)
     from core.raster.reference import rasterize_reference
 
     covs = covariances_from(quats, scales)
