@@ -1,0 +1,299 @@
+"""The learnable environment map E of Eq. 9: a cube map with seamless bilinear lookup.
+
+Faces, in storage order, follow the OpenGL / DirectX cube-map convention::
+
+    index  face  major axis   sc     tc
+      0     +X      +x        -z     -y
+      1     -X      -x        +z     -y
+      2     +Y      +y        +x     +z
+      3     -Y      -y        +x     -z
+      4     +Z      +z        +x     -y
+      5     -Z      -z        -x     -y
+
+For a direction d the face is that of its largest |component| (ties go to the lower
+axis: x before y before z; the lookup is continuous there, so the choice does not
+change the value). With ma = |d_major|: s = (sc / ma + 1) / 2 is the column coordinate
+and t = (tc / ma + 1) / 2 the row coordinate, both in [0, 1]; texel (row j, column i)
+of an R×R face has its centre at s = (i + 0.5) / R, t = (j + 0.5) / R. Texels are stored
+channel-last, (6, R, R, C). The cube lives in whatever world frame the cameras use
+(the dev scenes are +Z up; nothing here assumes an up axis).
+
+Seams: each face is padded with a one-texel border copied from the neighbouring faces
+(the neighbour's edge texel at the same position along the shared edge), and each
+padded corner is the mean of the three texels that meet at that cube corner. Bilinear
+filtering inside the padded face is then continuous across every edge and corner: on
+an edge both faces blend the same two texel rows with the same weights, and at a cube
+corner all three faces return the mean of the three corner texels. The padding is a
+gather from the parameters, rebuilt each call (6·(R+2)² texels), so gradients reach
+the texels that the border copies.
+"""
+
+from __future__ import annotations
+
+import math
+from functools import lru_cache
+
+import torch
+from torch import Tensor, nn
+from torch.autograd.function import once_differentiable
+
+FACE_NAMES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+
+# Per face: (major axis, major sign, sc axis, sc sign, tc axis, tc sign).
+FACE_TABLE: tuple[tuple[int, int, int, int, int, int], ...] = (
+    (0, +1, 2, -1, 1, -1),
+    (0, -1, 2, +1, 1, -1),
+    (1, +1, 0, +1, 2, +1),
+    (1, -1, 0, +1, 2, -1),
+    (2, +1, 0, +1, 1, -1),
+    (2, -1, 0, -1, 1, -1),
+)
+
+
+@lru_cache(maxsize=16)
+def _face_tables(device: torch.device, dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """Per face: component indices of (major, sc, tc) and their signs (6, 3) each."""
+    t = torch.tensor(FACE_TABLE, dtype=torch.long)
+    return t[:, [0, 2, 4]].to(device), t[:, [1, 3, 5]].to(device=device, dtype=dtype)
+
+
+def direction_to_face_uv(dirs: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Face index (...) long and face coordinates u = sc/ma, v = tc/ma in [-1, 1].
+
+    ``dirs`` need not be unit length but must be finite and non-zero (see
+    :func:`sample_cube` for the guarded entry point). Differentiable in ``dirs``.
+    """
+    with torch.no_grad():
+        axis = dirs.abs().argmax(dim=-1, keepdim=True)
+        face = (2 * axis + (dirs.gather(-1, axis) < 0).long()).squeeze(-1)
+    axes, signs = _face_tables(dirs.device, dirs.dtype)
+    # One gather gives (ma, sc, tc) per direction (the major sign makes ma = |d_major|).
+    comp = dirs.gather(-1, axes[face]) * signs[face]
+    ma = comp[..., 0]
+    # |sc|, |tc| <= ma exactly, and IEEE division is monotonic: u, v stay in [-1, 1].
+    return face, comp[..., 1] / ma, comp[..., 2] / ma
+
+
+def face_uv_to_direction(face: Tensor, u: Tensor, v: Tensor) -> Tensor:
+    """Inverse of :func:`direction_to_face_uv`: the (unnormalised) direction with ma = 1."""
+    t = torch.tensor(FACE_TABLE, dtype=torch.long, device=face.device)[face]
+    d = torch.zeros((*face.shape, 3), dtype=u.dtype, device=u.device)
+    d.scatter_(-1, t[..., 0:1], t[..., 1:2].to(u.dtype))
+    d.scatter_(-1, t[..., 2:3], (u * t[..., 3].to(u.dtype)).unsqueeze(-1))
+    d.scatter_(-1, t[..., 4:5], (v * t[..., 5].to(u.dtype)).unsqueeze(-1))
+    return d
+
+
+def texel_directions(
+    resolution: int,
+    dtype: torch.dtype = torch.float32,
+    device: torch.device | str = "cpu",
+    normalize: bool = True,
+) -> Tensor:
+    """(6, R, R, 3) world directions through the texel centres, in storage order."""
+    r = resolution
+    c = (torch.arange(r, dtype=torch.float64) + 0.5) * (2.0 / r) - 1.0
+    vv, uu = torch.meshgrid(c, c, indexing="ij")
+    face = torch.arange(6).view(6, 1, 1).expand(6, r, r)
+    d = face_uv_to_direction(face, uu.expand(6, r, r), vv.expand(6, r, r))
+    if normalize:
+        d = d / d.norm(dim=-1, keepdim=True)
+    return d.to(dtype=dtype, device=device)
+
+
+@lru_cache(maxsize=16)
+def _pad_plan_cpu(resolution: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Gather plan for the padded faces (6, R+2, R+2) from the flat texels (6·R·R).
+
+    Returns (source index per padded texel, corner positions (24,), corner sources
+    (24, 3)). Border sources are found geometrically: the border texel's centre on the
+    face's extended plane is projected onto the cube and the texel it lands in is
+    taken; this is the neighbour's edge texel at the same position along the edge.
+    """
+    r, p = resolution, resolution + 2
+    c = (torch.arange(p, dtype=torch.float64) - 0.5) * (2.0 / r) - 1.0  # padded centres
+    vv, uu = torch.meshgrid(c, c, indexing="ij")
+    face = torch.arange(6).view(6, 1, 1).expand(6, p, p)
+    d = face_uv_to_direction(face, uu.expand(6, p, p), vv.expand(6, p, p))
+    g, ug, vg = direction_to_face_uv(d)
+    col = ((ug + 1.0) * (0.5 * r)).floor().long().clamp(0, r - 1)
+    row = ((vg + 1.0) * (0.5 * r)).floor().long().clamp(0, r - 1)
+    src = g * r * r + row * r + col  # (6, p, p); corners fixed below
+
+    corner_pos, corner_src = [], []
+    for f in range(6):
+        for py in (0, p - 1):
+            for px in (0, p - 1):
+                own = src[f, 1 if py == 0 else p - 2, 1 if px == 0 else p - 2]
+                along_row = src[f, py, 1 if px == 0 else p - 2]
+                along_col = src[f, 1 if py == 0 else p - 2, px]
+                corner_pos.append(f * p * p + py * p + px)
+                corner_src.append([int(own), int(along_row), int(along_col)])
+    return src.reshape(-1), torch.tensor(corner_pos), torch.tensor(corner_src)
+
+
+@lru_cache(maxsize=16)
+def _pad_plan(resolution: int, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    return tuple(t.to(device) for t in _pad_plan_cpu(resolution))  # type: ignore[return-value]
+
+
+def pad_cube(texels: Tensor) -> Tensor:
+    """(6, R, R, C) -> (6, R+2, R+2, C) with a seamless one-texel border (differentiable)."""
+    six, r, r2, ch = texels.shape
+    if six != 6 or r != r2:
+        raise ValueError(f"cube texels must be (6, R, R, C), got {tuple(texels.shape)}")
+    src, corner_pos, corner_src = _pad_plan(r, texels.device)
+    flat = texels.reshape(6 * r * r, ch)
+    padded = flat[src]
+    corners = flat[corner_src].mean(dim=1)
+    padded = padded.index_copy(0, corner_pos, corners)
+    return padded.view(6, r + 2, r + 2, ch)
+
+
+def _min_major(dtype: torch.dtype) -> float:
+    # Below this the 1/ma factors of the projection and its gradient could overflow.
+    return math.sqrt(torch.finfo(dtype).tiny)
+
+
+def sample_cube(texels: Tensor, dirs: Tensor) -> Tensor:
+    """Seamless bilinear lookup of cube texels (6, R, R, C) at directions (..., 3) -> (..., C).
+
+    Directions need not be unit length. A direction that is not finite, or whose largest
+    |component| is below sqrt(smallest normal of the dtype) (≈1e-19 in float32, i.e.
+    zero length), returns 0 with zero gradient, so a bad pixel can neither produce nor
+    propagate NaN into the texel gradients. Differentiable in texels and directions
+    (the direction gradient runs through the face projection sc/ma, tc/ma).
+    """
+    if dirs.shape[-1] != 3:
+        raise ValueError(f"directions must be (..., 3), got {tuple(dirs.shape)}")
+    r, ch = texels.shape[1], texels.shape[-1]
+    p = r + 2
+    lead = dirs.shape[:-1]
+    d = dirs.reshape(-1, 3).to(texels.dtype)
+    valid = torch.isfinite(d).all(dim=-1) & (d.abs().amax(dim=-1) > _min_major(d.dtype))
+    plus_z = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype, device=d.device)
+    d = torch.where(valid.unsqueeze(-1), d, plus_z)
+    face, u, v = direction_to_face_uv(d)
+
+    # Continuous coordinates in the padded face, texel centres at integers:
+    # u = -1 -> 0.5 (edge between border and first texel), u = +1 -> R + 0.5.
+    x = (u + 1.0) * (0.5 * r) + 0.5
+    y = (v + 1.0) * (0.5 * r) + 0.5
+    padded = pad_cube(texels).reshape(-1, ch)
+    out = _PaddedBilinear.apply(padded, x, y, face * (p * p), p)
+    out = torch.where(valid.unsqueeze(-1), out, torch.zeros((), dtype=out.dtype, device=out.device))
+    return out.reshape(*lead, ch)
+
+
+class _PaddedBilinear(torch.autograd.Function):
+    """Bilinear taps inside padded faces, with a hand-written backward.
+
+    Autograd through the gather and the lerps allocates and zero-fills several
+    (N, 4, C) buffers; this keeps the backward to one index_add into the texels and two
+    dot products for the coordinates (a quarter less time for forward + backward on
+    CPU). ``x``, ``y`` are padded texel coordinates in [0.5, R + 0.5]; ``base`` is the
+    first flat index of each face. First derivatives only (nothing here needs more).
+    """
+
+    @staticmethod
+    def forward(ctx, padded: Tensor, x: Tensor, y: Tensor, base: Tensor, p: int) -> Tensor:
+        x0 = x.floor().clamp(0, p - 2)
+        y0 = y.floor().clamp(0, p - 2)
+        fx = (x - x0).unsqueeze(-1)
+        fy = (y - y0).unsqueeze(-1)
+        i00 = base + y0.long() * p + x0.long()
+        idx = torch.stack([i00, i00 + 1, i00 + p, i00 + p + 1], dim=-1).view(-1)
+        # index_select (backward: index_add) is much faster on CPU than advanced indexing.
+        taps = padded.index_select(0, idx).view(-1, 4, padded.shape[-1])
+        t0, t1, t2, t3 = taps.unbind(1)
+        top = t0 + fx * (t1 - t0)
+        bottom = t2 + fx * (t3 - t2)
+        ctx.save_for_backward(idx, taps, fx, fy)
+        ctx.num_texels = padded.shape[0]
+        return top + fy * (bottom - top)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad: Tensor):  # type: ignore[override]
+        idx, taps, fx, fy = ctx.saved_tensors
+        grad_padded = grad_x = grad_y = None
+        if ctx.needs_input_grad[0]:
+            gx, gy = 1.0 - fx, 1.0 - fy
+            w = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], dim=1)  # (N, 4, 1)
+            contrib = (w * grad.unsqueeze(1)).view(-1, grad.shape[-1])
+            grad_padded = grad.new_zeros(ctx.num_texels, grad.shape[-1])
+            grad_padded.index_add_(0, idx, contrib)
+        if ctx.needs_input_grad[1] or ctx.needs_input_grad[2]:
+            t0, t1, t2, t3 = taps.unbind(1)
+            d_top, d_bottom = t1 - t0, t3 - t2
+            grad_x = (grad * (d_top + fy * (d_bottom - d_top))).sum(-1)
+            d_y = (t2 - t0) + fx * (d_bottom - d_top)  # bottom - top
+            grad_y = (grad * d_y).sum(-1)
+        return grad_padded, grad_x, grad_y, None, None
+
+
+def softplus_inverse(y: Tensor) -> Tensor:
+    """x with softplus(x) = y for y > 0, computed stably in float64."""
+    y64 = y.double()
+    return (y64 + torch.log(-torch.expm1(-y64))).to(y.dtype)
+
+
+class EnvMap(nn.Module):
+    """Learnable cube map E (Eq. 9): ``raw`` (6, R, R, C) unconstrained, radiance = softplus(raw).
+
+    Why softplus: radiance must be non-negative but unbounded (HDR highlights above 1),
+    and the gradient must neither vanish nor explode. Softplus is linear above ~1, so a
+    bright texel gets a unit gradient (exp would scale its gradient by its own value and
+    make highlights jumpy), and it is smooth with gradient sigmoid(raw) below, so dark
+    texels keep learning (a clamp/ReLU would freeze them at 0). The default init is a
+    constant grey of 0.5 (raw ≈ -0.43, gradient ≈ 0.39).
+    """
+
+    def __init__(
+        self,
+        resolution: int = 128,
+        channels: int = 3,
+        init_value: float = 0.5,
+        min_value: float = 1e-6,
+    ) -> None:
+        super().__init__()
+        if resolution < 1 or channels < 1:
+            raise ValueError("resolution and channels must be positive")
+        if init_value <= 0:
+            raise ValueError("init_value must be > 0 (softplus never reaches 0)")
+        self.min_value = float(min_value)
+        raw0 = softplus_inverse(torch.tensor(float(init_value), dtype=torch.float64)).item()
+        self.raw = nn.Parameter(torch.full((6, resolution, resolution, channels), raw0))
+
+    @property
+    def resolution(self) -> int:
+        return self.raw.shape[1]
+
+    @property
+    def channels(self) -> int:
+        return self.raw.shape[-1]
+
+    def texels(self) -> Tensor:
+        """Radiance per texel, (6, R, R, C), differentiable in ``raw``."""
+        return nn.functional.softplus(self.raw)
+
+    def sample(self, dirs: Tensor) -> Tensor:
+        """Radiance toward world directions (..., 3) -> (..., C); see :func:`sample_cube`."""
+        return sample_cube(self.texels(), dirs)
+
+    def forward(self, dirs: Tensor) -> Tensor:
+        return self.sample(dirs)
+
+    @torch.no_grad()
+    def set_texels(self, values: Tensor) -> None:
+        """Set the radiance to ``values`` (6, R, R, C); values below ``min_value`` are raised
+        to it (softplus cannot reach 0, and a floor keeps the gradient sigmoid(raw) usable)."""
+        if tuple(values.shape) != tuple(self.raw.shape):
+            raise ValueError(f"texels must be {tuple(self.raw.shape)}, got {tuple(values.shape)}")
+        v = values.detach().to(device=self.raw.device, dtype=torch.float64)
+        if not torch.isfinite(v).all():
+            raise ValueError("environment map values must be finite")
+        self.raw.copy_(softplus_inverse(v.clamp_min(self.min_value)).to(self.raw.dtype))
+
+    def extra_repr(self) -> str:
+        return f"resolution={self.resolution}, channels={self.channels}, activation=softplus"
