@@ -46,6 +46,10 @@ if TYPE_CHECKING:
 
 # 3DGS constants.
 RESET_OPACITY = 0.01
+# An opacity reset needs ~200 Adam steps to recover (logit 0.01 → 0.5 at lr 0.025);
+# resets closer than this keep every Gaussian transparent, so short runs space
+# them at least this far apart (and runs shorter than this get none).
+MIN_RESET_INTERVAL = 1000
 SPLIT_SAMPLES = 2
 SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_SAMPLES  # 1.6
 WORLD_SIZE_FRACTION = 0.1  # prune when max scale > this × scene radius
@@ -76,7 +80,9 @@ class DensifyStrategy:
         # still gets about ten densification steps.
         self.interval = max(1, min(d.interval, (self.stop - self.start) // 10))
         self.reset_every = (
-            max(1, cfg.scaled(d.opacity_reset_interval)) if d.opacity_reset_interval > 0 else 0
+            max(MIN_RESET_INTERVAL, cfg.scaled(d.opacity_reset_interval))
+            if d.opacity_reset_interval > 0
+            else 0
         )
         self.grad_threshold = float(d.grad_threshold)
         self.split_scale = float(d.percent_dense) * scene_radius

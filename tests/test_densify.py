@@ -101,14 +101,17 @@ def assert_consistent(g: Gaussians, opts: dict[str, torch.optim.Optimizer]) -> N
 def test_marks_are_scaled_and_reset_fires_on_schedule() -> None:
     s = DensifyStrategy(config(iterations=3_000, start=500), scene_radius=1.0)
     # The interval (views averaged per step) is not scaled: it stays 100 here...
-    assert (s.start, s.stop, s.interval, s.reset_every) == (50, 1500, 100, 300)
+    assert (s.start, s.stop, s.interval, s.reset_every) == (50, 1500, 100, 1000)
     refine = [i for i in range(3_000) if s.is_refine_step(i)]
     assert refine[0] == 100 and refine[-1] == 1400 and len(refine) == 14
     # ...and shrinks only so that a very short run still densifies about ten times.
     short = DensifyStrategy(config(iterations=600, start=500), scene_radius=1.0)
     assert short.interval == (short.stop - short.start) // 10
     # gsplat 1.5.3 writes `step % every == 0 & step > 0`, which is always False.
-    assert [i for i in range(3_000) if s.is_reset_step(i)] == [300, 600, 900, 1200]
+    # Resets are never closer than MIN_RESET_INTERVAL (the scaled 300 would starve opacity).
+    assert [i for i in range(3_000) if s.is_reset_step(i)] == [1000]
+    full = DensifyStrategy(config(iterations=30_000, start=500), scene_radius=1.0)
+    assert [i for i in range(30_000) if full.is_reset_step(i)] == [3000, 6000, 9000, 12000]
     off = DensifyStrategy(config(opacity_reset_interval=0), scene_radius=1.0)
     assert off.reset_every == 0 and not any(off.is_reset_step(i) for i in range(0, 15_000, 100))
     assert not off.size_pruning(14_000)
@@ -297,7 +300,7 @@ def test_size_pruning_only_after_first_reset(it: int, pruned: int) -> None:
 
 
 def test_opacity_reset_clamps_and_restarts_moments() -> None:
-    cfg = config(iterations=3_000, prune_opacity=0.0)
+    cfg = config(iterations=30_000, prune_opacity=0.0)
     g = make_gaussians([SMALL] * 3, opacities=[0.9, 0.5, 0.003])
     opts = optimizers_for(g)
     adam_steps(g, opts)
@@ -306,9 +309,9 @@ def test_opacity_reset_clamps_and_restarts_moments() -> None:
     steps = {k: opts[k].state[p]["step"].item() for k, p in g.params.items()}
     means_m = opts["means"].state[g.params["means"]]["exp_avg"].clone()
     s = DensifyStrategy(cfg, 1.0)
-    assert s.step_post_backward(g, opts, fake_result([0.0] * 3), 299, W, H)["reset"] == 0
+    assert s.step_post_backward(g, opts, fake_result([0.0] * 3), 2999, W, H)["reset"] == 0
     torch.testing.assert_close(g.opacities[0].detach(), torch.tensor(0.9))
-    stats = s.step_post_backward(g, opts, fake_result([0.0] * 3), 300, W, H)
+    stats = s.step_post_backward(g, opts, fake_result([0.0] * 3), 3000, W, H)
     assert stats["reset"] == 1 and g.num == 3
     assert g.params["opacity_logits"] is opa  # edited in place
     torch.testing.assert_close(g.opacities.detach(), torch.tensor([0.01, 0.01, 0.003]))
@@ -316,9 +319,9 @@ def test_opacity_reset_clamps_and_restarts_moments() -> None:
     assert st["exp_avg"].abs().sum() == 0 and st["exp_avg_sq"].abs().sum() == 0
     assert {k: opts[k].state[p]["step"].item() for k, p in g.params.items()} == steps
     torch.testing.assert_close(opts["means"].state[g.params["means"]]["exp_avg"], means_m)
-    # No reset at the stop mark (1500 is a multiple of 300) nor after it.
+    # No reset at the stop mark (15000 is a multiple of 3000) nor after it.
     g.params["opacity_logits"].data[:] = 2.0
-    for it in (1_500, 1_800):
+    for it in (15_000, 18_000):
         assert s.step_post_backward(g, opts, fake_result([0.0] * 3), it, W, H)["reset"] == 0
     assert (g.params["opacity_logits"] == 2.0).all()
 

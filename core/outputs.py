@@ -1,0 +1,151 @@
+"""What a finished (or checkpointed) run leaves behind for users.
+
+point_cloud.ply (3DGS layout), the env map (EXR cross + lat-long + PNG preview),
+renders of test views (final, base, specular, normal, depth, w_r, alpha), geometry
+error against ground truth where the scene ships it, and report.md with the
+error-vs-time plot.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from core.envmap_io import save_envmap
+from core.groundtruth import load_ground_truth
+from core.imageio import write_image
+from core.metrics import depth_error, normal_angle_error_deg
+from core.ply import save_ply
+from core.report import write_report
+
+if TYPE_CHECKING:
+    from core.trainer import Trainer
+
+CHANNELS = ("final", "base", "specular", "normal", "depth", "w_r", "alpha")
+
+
+def colormap(x: Tensor, valid: Tensor, name: str = "turbo") -> Tensor:
+    """Map a scalar image to RGB (linear) with a matplotlib colormap; invalid → black."""
+    import matplotlib
+
+    v = x[valid]
+    lo, hi = (float(v.min()), float(v.max())) if v.numel() else (0.0, 1.0)
+    t = ((x - lo) / max(hi - lo, 1e-12)).clamp(0, 1).cpu().numpy()
+    rgb = matplotlib.colormaps[name](t)[..., :3].astype(np.float32)
+    out = torch.from_numpy(rgb)
+    out[~valid.cpu()] = 0.0
+    # Colormaps are defined in display space; store linear so write_image's sRGB encode round-trips.
+    return torch.where(out <= 0.04045, out / 12.92, ((out + 0.055) / 1.055) ** 2.4)
+
+
+@torch.no_grad()
+def channel_images(trainer: Trainer, camera) -> dict[str, Tensor]:
+    """Every viewer/report channel of one view as linear RGB (H, W, 3) on the CPU."""
+    from core.trainer import eval_background, render_view
+
+    bg = eval_background(trainer.cfg, trainer.device)
+    phase = trainer.current_phase(max(trainer.iteration - 1, 0))
+    gb, shade, _ = render_view(
+        trainer.gaussians, trainer.envmap, camera, phase, bg, trainer.cfg.backend
+    )
+    R = camera.R.to(gb.normal)
+    n_world = gb.normal @ R
+    n_world = n_world / n_world.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    normal_rgb = (n_world * 0.5 + 0.5) * gb.alpha[..., None]
+    normal_lin = torch.where(
+        normal_rgb <= 0.04045, normal_rgb / 12.92, ((normal_rgb + 0.055) / 1.055) ** 2.4
+    )
+    depth = gb.depth if phase.planar_depth else gb.center_depth
+    valid = gb.depth_valid if phase.planar_depth else gb.alpha > 0.05
+    return {
+        "final": shade.final.cpu(),
+        "base": (gb.base + (1 - gb.alpha[..., None]) * bg).cpu(),
+        "specular": shade.specular.cpu(),
+        "normal": normal_lin.cpu(),
+        "depth": colormap(depth.cpu(), valid.cpu()),
+        "w_r": gb.w_r[..., None].expand(-1, -1, 3).cpu(),
+        "alpha": gb.alpha[..., None].expand(-1, -1, 3).cpu(),
+    }
+
+
+@torch.no_grad()
+def geometry_errors(trainer: Trainer, views) -> dict[str, Any] | None:
+    """Mean normal angle and depth error vs GT maps over pixels both cover."""
+    root = trainer.scene.root
+    if root is None:
+        return None
+    angles, abs_err, rel_err, n = [], [], [], 0
+    for v in views:
+        gt = load_ground_truth(root, v)
+        if gt is None:
+            continue
+        from core.gbuffer import render_gbuffer
+
+        gb, _ = render_gbuffer(
+            trainer.gaussians, v.camera, sh_degree=0, backend=trainer.cfg.backend
+        )
+        phase = trainer.current_phase(max(trainer.iteration - 1, 0))
+        depth = gb.depth if phase.planar_depth else gb.center_depth
+        valid = gb.depth_valid if phase.planar_depth else gb.alpha > 0.05
+        mask = gt.mask.to(depth.device) & valid & (gb.alpha > 0.5)
+        R = v.camera.R.to(gb.normal)
+        n_world = gb.normal @ R
+        angles.append(normal_angle_error_deg(n_world, gt.normal_world.to(n_world), mask))
+        de = depth_error(depth, gt.depth.to(depth), mask)
+        abs_err.append(de["abs"])
+        rel_err.append(de["rel"])
+        n += 1
+    if n == 0:
+        return None
+
+    def mean(xs):
+        xs = [x for x in xs if not math.isnan(x)]
+        return float(np.mean(xs)) if xs else math.nan
+
+    return {
+        "views": n,
+        "normal_error_deg": mean(angles),
+        "depth_abs_error": mean(abs_err),
+        "depth_rel_error": mean(rel_err),
+    }
+
+
+def export_run(trainer: Trainer, max_renders: int = 4) -> dict[str, Any]:
+    """Write every artifact of the run into its folder; returns a summary."""
+    out = trainer.out
+    save_ply(trainer.gaussians.detach(), out / "point_cloud.ply")
+    files: dict[str, Any] = {"ply": "point_cloud.ply"}
+    if trainer.envmap is not None:
+        paths = save_envmap(trainer.envmap.texels().detach().cpu(), out)
+        files["envmap"] = {k: Path(p).name for k, p in paths.items()}
+    render_dir = out / "renders"
+    views = trainer.eval_views()[:max_renders]
+    for v in views:
+        stem = (v.name or "view").replace("/", "_")
+        for ch, img in channel_images(trainer, v.camera).items():
+            write_image(render_dir / f"{stem}_{ch}.png", img)
+    files["renders"] = sorted(p.name for p in render_dir.glob("*.png"))
+    geo_views = trainer.scene.test or trainer.scene.train
+    geo = geometry_errors(trainer, geo_views)
+    sections = []
+    if geo is not None:
+        (out / "geometry.json").write_text(json.dumps(geo, indent=2))
+        sections.append(
+            "## Geometry against ground truth\n\n"
+            f"Over {geo['views']} views: mean normal error {geo['normal_error_deg']:.2f}°, "
+            f"depth error {geo['depth_abs_error']:.4f} (abs), "
+            f"{100 * geo['depth_rel_error']:.2f}% (rel)."
+        )
+    if trainer.skipped_steps:
+        sections.append(f"Skipped {trainer.skipped_steps} steps with non-finite loss or gradients.")
+    write_report(out, sections)
+    files["report"] = "report.md"
+    summary = {"files": files, "geometry": geo, "iteration": trainer.iteration}
+    (out / "outputs.json").write_text(json.dumps(summary, indent=2, default=str))
+    return summary

@@ -1,0 +1,264 @@
+"""The scene plan: decide, record and let users override which parts a scene needs.
+
+Decisions made before training (from the capture alone): multi-view neighbours per
+view, background handling, mesh extraction. The environment map / deferred shading
+and the SH degree need evidence of view dependence, which needs geometry: they are
+decided at the end of the RGB-only phase (the env map is not used before then
+anyway) by warping training views into their neighbours through the phase-1 depth
+and comparing how much the *captured* colours of the same surface point differ
+with how much the *view-independent model's* colours differ (its difference is
+pure misregistration). A part decided off is never built or computed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+
+from core.cameras import Camera
+from core.config import ConfigError, TrainConfig
+from core.imageio import linear_to_srgb
+from core.losses import bilinear_lookup
+from core.scene import Scene
+
+if TYPE_CHECKING:
+    from core.trainer import Trainer
+
+OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh")
+# Excess colour variation across views (sRGB units) above which a scene is specular.
+SPECULAR_EXCESS = 0.03
+
+
+@dataclass
+class Decision:
+    value: Any
+    reason: str
+    evidence: dict[str, Any] = field(default_factory=dict)
+    overridden: bool = False
+    pending: bool = False
+
+
+@dataclass
+class ScenePlan:
+    envmap: Decision
+    sh_degree: Decision
+    multi_view: Decision
+    background: Decision
+    mesh: Decision
+    neighbours: list[int | None] = field(default_factory=list)
+    init: dict[str, Any] = field(default_factory=dict)
+
+    def neighbour_of(self, view_index: int) -> int | None:
+        if not self.multi_view.value or view_index >= len(self.neighbours):
+            return None
+        return self.neighbours[view_index]
+
+    def envmap_possible(self, cfg: TrainConfig) -> bool:
+        return cfg.ablation.deferred_shading and bool(self.envmap.value)
+
+    def decide_envmap(self, evidence: dict[str, Any], cfg: TrainConfig) -> None:
+        """Turn the view-dependence probe into the env-map and SH decisions."""
+        if not self.envmap.pending:
+            return
+        excess = evidence.get("excess")
+        if excess is None or not math.isfinite(excess):
+            self.envmap = Decision(True, "no usable view pairs to measure: kept on", evidence)
+            self.sh_degree = Decision(cfg.sh_degree, "kept (no evidence)", evidence)
+            return
+        if excess >= SPECULAR_EXCESS:
+            self.envmap = Decision(
+                True, f"specular: colour varies across views by {excess:.3f} beyond "
+                f"misregistration (≥ {SPECULAR_EXCESS})", evidence)  # fmt: skip
+            self.sh_degree = Decision(cfg.sh_degree, "view-dependent scene", evidence)
+        elif excess >= SPECULAR_EXCESS / 2:
+            self.envmap = Decision(
+                False, f"mildly view-dependent ({excess:.3f}): SH colour suffices", evidence
+            )
+            self.sh_degree = Decision(cfg.sh_degree, "mild view dependence: SH kept", evidence)
+        else:
+            self.envmap = Decision(
+                False, f"diffuse: view-dependent variation {excess:.3f} < "
+                f"{SPECULAR_EXCESS / 2}", evidence)  # fmt: skip
+            self.sh_degree = Decision(0, "no view dependence: SH degree 0", evidence)
+        _apply_overrides(self, cfg, only=("envmap", "sh_degree"))
+
+    # -- persistence --------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "decisions": {
+                k: asdict(getattr(self, k))
+                for k in ("envmap", "sh_degree", "multi_view", "background", "mesh")
+            },
+            "neighbours": list(self.neighbours),
+            "init": dict(self.init),
+        }
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> ScenePlan:
+        dec = {k: Decision(**v) for k, v in d["decisions"].items()}
+        return ScenePlan(
+            neighbours=list(d.get("neighbours", [])), init=dict(d.get("init", {})), **dec
+        )
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        tmp = path.with_suffix(".json.tmp")
+        tmp.write_text(json.dumps(self.to_dict(), indent=2, default=float))
+        tmp.replace(path)
+        return path
+
+
+def find_neighbours(
+    cameras: list[Camera], max_angle_deg: float, min_baseline: float
+) -> list[tuple[int | None, float]]:
+    """Per camera, the other camera with the smallest angle between optical axes.
+
+    Cameras at (almost) the same position give no parallax and are not neighbours.
+    Returns (index or None, angle in degrees) per camera.
+    """
+    if len(cameras) < 2:
+        return [(None, math.nan)] * len(cameras)
+    fwd = torch.stack([c.forward for c in cameras])
+    ctr = torch.stack([c.center for c in cameras])
+    cos = (fwd @ fwd.T).clamp(-1, 1)
+    ang = torch.rad2deg(torch.acos(cos))
+    dist = torch.cdist(ctr, ctr)
+    ang = torch.where(dist > min_baseline, ang, torch.full_like(ang, math.inf))
+    ang.fill_diagonal_(math.inf)
+    best = ang.min(dim=1)
+    out: list[tuple[int | None, float]] = []
+    for a, j in zip(best.values.tolist(), best.indices.tolist(), strict=True):
+        out.append((j, a) if a <= max_angle_deg else (None, a))
+    return out
+
+
+def _apply_overrides(
+    plan: ScenePlan, cfg: TrainConfig, only: tuple[str, ...] = OVERRIDABLE
+) -> None:
+    for key, value in cfg.plan_overrides.items():
+        if key not in OVERRIDABLE:
+            raise ConfigError(
+                f"config: field 'plan_overrides.{key}': unknown plan part "
+                f"(expected one of {', '.join(OVERRIDABLE)})"
+            )
+        if key not in only:
+            continue
+        if key == "sh_degree" and (not isinstance(value, int) or not 0 <= value <= 3):
+            raise ConfigError("config: field 'plan_overrides.sh_degree': expected 0..3")
+        if key != "sh_degree" and not isinstance(value, bool):
+            raise ConfigError(f"config: field 'plan_overrides.{key}': expected true or false")
+        old: Decision = getattr(plan, key)
+        setattr(
+            plan,
+            key,
+            Decision(
+                value, f"set by the user (plan said {old.value}: {old.reason})", old.evidence, True
+            ),
+        )
+
+
+def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
+    """Decisions that need only the capture; env map and SH stay pending."""
+    cams = [v.camera for v in scene.train]
+    nbs = find_neighbours(cams, cfg.loss.multiview_max_angle_deg, 1e-3 * scene.radius)
+    with_nb = sum(1 for j, _ in nbs if j is not None)
+    angles = [a for j, a in nbs if j is not None]
+    mv_evidence = {
+        "views": len(cams),
+        "views_with_neighbour": with_nb,
+        "max_angle_deg": cfg.loss.multiview_max_angle_deg,
+        "median_neighbour_angle_deg": float(torch.tensor(angles).median()) if angles else None,
+    }
+    if not cfg.ablation.multi_view:
+        mv = Decision(False, "switched off by the ablation config", mv_evidence)
+    elif with_nb == 0:
+        mv = Decision(False, "no view has a neighbour within the angle limit", mv_evidence)
+    else:
+        mv = Decision(True, f"{with_nb}/{len(cams)} views have a neighbour", mv_evidence)
+    if scene.has_masks:
+        bg = Decision("masked", f"alpha/masks present: composite over {cfg.background}", {})
+    else:
+        bg = Decision("unmasked", "no alpha or masks: images used as they are", {})
+    if cfg.ablation.deferred_shading:
+        env = Decision(True, "to be measured at the end of the RGB phase", pending=True)
+        sh = Decision(cfg.sh_degree, "to be measured with the env map", pending=True)
+    else:
+        env = Decision(False, "switched off by the ablation config (SH colour only)")
+        sh = Decision(cfg.sh_degree, "from the config")
+    mesh = Decision(False, "not asked for (plan_overrides.mesh or `glint mesh`)")
+    plan = ScenePlan(env, sh, mv, bg, mesh, [j for j, _ in nbs])
+    _apply_overrides(plan, cfg)
+    return plan
+
+
+@torch.no_grad()
+def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any]:
+    """Measure colour variation of the same surface across views (see module doc)."""
+    from core.gbuffer import render_gbuffer
+
+    views = trainer._targets
+    cams = [v.camera for v in views]
+    nbs = find_neighbours(cams, 45.0, 1e-3 * trainer.radius)
+    pairs = [(i, j) for i, (j, _) in enumerate(nbs) if j is not None]
+    if len(pairs) > max_pairs:
+        step = len(pairs) / max_pairs
+        pairs = [pairs[int(k * step)] for k in range(max_pairs)]
+    gt_diffs, model_diffs, pixels = [], [], 0
+    for i, j in pairs:
+        vi, vj = views[i], views[j]
+        gi, _ = render_gbuffer(
+            trainer.gaussians, vi.camera, sh_degree=0, backend=trainer.cfg.backend
+        )
+        gj, _ = render_gbuffer(
+            trainer.gaussians, vj.camera, sh_degree=0, backend=trainer.cfg.backend
+        )
+        ok = gi.depth_valid & (gi.alpha > 0.9)
+        if vi.mask is not None:
+            ok = ok & (vi.mask > 0.9)
+        idx = ok.reshape(-1).nonzero()[:, 0]
+        if idx.numel() == 0:
+            continue
+        W = vi.width
+        uv = torch.stack([(idx % W).float() + 0.5, (idx // W).float() + 0.5], dim=-1)
+        P = vi.camera.backproject(uv, gi.depth.reshape(-1)[idx])
+        uv_j, z_j = vj.camera.project(P)
+        d_j, inside = bilinear_lookup(gj.depth, uv_j)
+        a_j, _ = bilinear_lookup(gj.alpha, uv_j)
+        vis = inside & (z_j > 0) & ((d_j - z_j).abs() < 0.02 * z_j) & (a_j > 0.9)
+        if vj.mask is not None:
+            m_j, _ = bilinear_lookup(vj.mask, uv_j)
+            vis = vis & (m_j > 0.9)
+        if int(vis.sum()) < 16:
+            continue
+
+        def warp(img: torch.Tensor, uv_j=uv_j, vis=vis) -> torch.Tensor:
+            return torch.stack([bilinear_lookup(img[..., c], uv_j[vis])[0] for c in range(3)], -1)
+
+        def disp(x: torch.Tensor) -> torch.Tensor:
+            return linear_to_srgb(x.clamp(0, 1))
+
+        base_i = gi.base / gi.alpha.clamp_min(1e-6)[..., None]
+        base_j = gj.base / gj.alpha.clamp_min(1e-6)[..., None]
+        sel = idx[vis]
+        gt_i = vi.image.reshape(-1, 3)[sel]
+        mod_i = base_i.reshape(-1, 3)[sel]
+        gt_diffs.append((disp(gt_i) - disp(warp(vj.image))).abs().mean(-1))
+        model_diffs.append((disp(mod_i) - disp(warp(base_j))).abs().mean(-1))
+        pixels += int(vis.sum())
+    if not gt_diffs:
+        return {"pairs": 0, "pixels": 0, "excess": None}
+    g = torch.cat(gt_diffs)
+    m = torch.cat(model_diffs)
+    return {
+        "pairs": len(gt_diffs),
+        "pixels": pixels,
+        "iteration": trainer.iteration,
+        "captured_variation": float(g.mean()),
+        "model_variation": float(m.mean()),
+        "excess": float(g.mean() - m.mean()),
+    }
