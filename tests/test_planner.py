@@ -1,0 +1,83 @@
+"""The scene plan: measured decisions, recorded evidence, user overrides."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from core.cameras import Camera, Intrinsics
+from core.config import ConfigError, config_from_dict
+from core.planner import find_neighbours, plan_scene
+from core.synthetic import make_scene
+from core.trainer import Trainer
+
+
+def _phase1_plan(scene, tmp_path, **overrides):
+    """Train just through the RGB phase and return the plan decided at its end."""
+    cfg = config_from_dict(
+        {
+            "iterations": 3000,  # RGB phase ends at 300
+            "init_points": 1500,
+            "envmap_resolution": 8,
+            "eval": {"every": 1000, "views": 1},
+            **overrides,
+        }
+    )
+    t = Trainer(scene, cfg, tmp_path, should_stop=lambda: not t.plan.envmap.pending)
+    t.setup(resume=False)
+    t.train()
+    return t, json.loads((tmp_path / "plan.json").read_text())
+
+
+@pytest.mark.parametrize(("kind", "expect"), [("diffuse", False), ("mirror", True)])
+def test_planner_turns_envmap_off_for_diffuse_and_on_for_mirror(kind, expect, tmp_path):
+    scene = make_scene("sphere", kind, n_train=32, n_test=1, size=32, seed=3, samples=2)
+    t, plan = _phase1_plan(scene, tmp_path)
+    env = plan["decisions"]["envmap"]
+    assert env["value"] is expect, env
+    assert env["evidence"]["pairs"] > 0 and env["evidence"]["pixels"] > 100
+    if expect:
+        assert t.envmap is not None and "envmap" in t.optimizers
+    else:
+        # Left out means not built and never computed.
+        assert t.envmap is None and "envmap" not in t.optimizers
+        assert plan["decisions"]["sh_degree"]["value"] == 0
+        assert not t.current_phase(2999).envmap
+
+
+def test_user_override_wins_and_is_recorded(tmp_path):
+    scene = make_scene("sphere", "diffuse", n_train=32, n_test=1, size=32, seed=3, samples=2)
+    _, plan = _phase1_plan(scene, tmp_path, plan_overrides={"envmap": True})
+    env = plan["decisions"]["envmap"]
+    assert env["value"] is True and env["overridden"] and "set by the user" in env["reason"]
+
+
+def test_invalid_override_is_a_config_error():
+    scene = make_scene("sphere", "diffuse", n_train=4, n_test=1, size=16, samples=1)
+    with pytest.raises(ConfigError, match="plan_overrides.bogus"):
+        plan_scene(scene, config_from_dict({"plan_overrides": {"bogus": True}}))
+    with pytest.raises(ConfigError, match="plan_overrides.sh_degree"):
+        plan_scene(scene, config_from_dict({"plan_overrides": {"sh_degree": 7}}))
+
+
+def test_neighbours_respect_angle_and_baseline():
+    intr = Intrinsics(20, 20, 10, 10, 20, 20)
+    cams = [
+        Camera.look_at([3.0, 0, 0], [0, 0, 0], [0, 0, 1], intr),
+        Camera.look_at([0, 3.0, 0], [0, 0, 0], [0, 0, 1], intr),  # 90° away
+        Camera.look_at([3.0, 0.5, 0], [0, 0, 0], [0, 0, 1], intr),  # ~9.5° from the first
+        Camera.look_at([3.0, 0, 0], [0, 0, 0], [0, 0, 1], intr),  # same pose as the first
+    ]
+    nb = find_neighbours(cams, 30.0, 1e-3)
+    assert nb[0][0] == 2 and nb[2][0] in (0, 3)
+    assert nb[1][0] is None  # nothing within 30°
+    assert nb[3][0] == 2  # the identical camera is no neighbour: no parallax
+
+
+def test_no_neighbours_turns_multi_view_off_and_says_why():
+    scene = make_scene("sphere", "diffuse", n_train=4, n_test=1, size=16, samples=1)
+    plan = plan_scene(scene, config_from_dict({}))
+    assert plan.multi_view.value is False and "no view has a neighbour" in plan.multi_view.reason
+    assert all(plan.neighbour_of(i) is None for i in range(4))
+    assert plan.background.value == "masked"
