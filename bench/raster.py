@@ -58,7 +58,9 @@ def run_case(case: dict) -> dict:
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
     ap.add_argument("--backends", nargs="+", default=["reference"])
     ap.add_argument("--sizes", nargs="+", default=DEFAULT_SIZES, help="SIZE:N pairs")
     ap.add_argument("--channels", type=int, default=8)
@@ -83,11 +85,14 @@ def main(argv: list[str] | None = None) -> None:
             }
             rows.append(run_isolated("bench.raster", case))
     print(f"Machine: {machine_line()}\n")
-    print("| backend | image | Gaussians | channels | forward ms | fwd+bwd ms | peak RSS MiB | mean alpha |")
+    cols = ["backend", "image", "Gaussians", "channels", "forward ms", "fwd+bwd ms"]
+    cols += ["peak RSS MiB", "mean alpha"]
+    print("| " + " | ".join(cols) + " |")
     print("|---|---|---|---|---|---|---|---|")
     for r in rows:
         if "error" in r:
-            print(f"| {r['backend']} | {r['size']}² | {r['n']} | {r['channels']} | error: {r['error']} | | | |")
+            head = f"| {r['backend']} | {r['size']}² | {r['n']} | {r['channels']}"
+            print(f"{head} | error: {r['error']} | | | |")
             continue
         print(
             f"| {r['backend']} | {r['size']}² | {r['n']} | {r['channels']} | {r['forward_ms']:.1f} "

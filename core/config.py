@@ -123,9 +123,8 @@ class TrainConfig(_Strict):
     @field_validator("background")
     @classmethod
     def _bg(cls, v: Any) -> Any:
-        if isinstance(v, list):
-            if len(v) != 3 or not all(0.0 <= float(x) <= 1.0 for x in v):
-                raise ValueError("background as a list must be 3 values in [0, 1]")
+        if isinstance(v, list) and (len(v) != 3 or not all(0.0 <= float(x) <= 1.0 for x in v)):
+            raise ValueError("background as a list must be 3 values in [0, 1]")
         return v
 
     def scaled(self, mark: int) -> int:

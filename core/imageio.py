@@ -29,9 +29,13 @@ def linear_to_srgb(x: Tensor | np.ndarray) -> Tensor | np.ndarray:
     """IEC 61966-2-1 encoding; negative inputs map to 0."""
     if isinstance(x, np.ndarray):
         x = np.maximum(x, 0.0)
-        return np.where(x <= 0.0031308, x * 12.92, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055)
+        return np.where(
+            x <= 0.0031308, x * 12.92, 1.055 * np.maximum(x, 0.0031308) ** (1 / 2.4) - 0.055
+        )
     x = x.clamp_min(0.0)
-    return torch.where(x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055)
+    return torch.where(
+        x <= 0.0031308, x * 12.92, 1.055 * x.clamp_min(0.0031308) ** (1 / 2.4) - 0.055
+    )
 
 
 def read_image_array(path: str | Path) -> tuple[np.ndarray, bool]:

@@ -35,7 +35,9 @@ def _analytic(cam, means, normal, dtype):
 def test_planar_depth_is_exact_ray_plane_depth(deg, dtype):
     cam = identity_camera(48)
     means, quats, scales, op, colors, normal, w_r = _flat_gaussian(deg, dtype)
-    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    gb, _ = render_gbuffer_tensors(
+        means, quats, scales, op, colors, normal, w_r, cam, backend="reference"
+    )
     truth, cos = _analytic(cam, means, normal, dtype)
     covered = gb.alpha > MIN_ALPHA
     assert covered.sum() > 50
@@ -53,7 +55,9 @@ def test_center_depth_eq5_is_biased_on_tilted_plane():
     dtype = torch.float64
     cam = identity_camera(48)
     means, quats, scales, op, colors, normal, w_r = _flat_gaussian(60.0, dtype)
-    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    gb, _ = render_gbuffer_tensors(
+        means, quats, scales, op, colors, normal, w_r, cam, backend="reference"
+    )
     truth, _ = _analytic(cam, means, normal, dtype)
     v = gb.depth_valid
     # Eq. 5 gives the centre's z everywhere: off by far more than Eq. 8's 1e-4.
@@ -65,10 +69,14 @@ def test_center_depth_eq5_is_biased_on_tilted_plane():
 def test_grazing_plane_is_masked_not_inf():
     dtype = torch.float32
     cam = identity_camera(32)
-    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(89.0, dtype, center=(0.0, 0.0, 2.0))
+    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(
+        89.0, dtype, center=(0.0, 0.0, 2.0)
+    )
     for t in (means, quats, scales, op):
         t.requires_grad_(True)
-    gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normal, w_r, cam, backend="reference")
+    gb, _ = render_gbuffer_tensors(
+        means, quats, scales, op, colors, normal, w_r, cam, backend="reference"
+    )
     covered = gb.alpha > MIN_ALPHA
     assert covered.any()
     assert not gb.depth_valid[covered].any()  # every covered pixel is grazing: masked
@@ -94,7 +102,9 @@ def test_gbuffer_gradients_match_finite_differences():
     cam = identity_camera(10, f=12.0)
     g = torch.Generator().manual_seed(4)
     means = torch.tensor([[0.0, 0.0, 2.0], [0.1, 0.05, 2.2], [-0.1, 0.0, 2.4]], dtype=dtype)
-    quats = torch.randn(3, 4, generator=g, dtype=dtype) * 0.2 + torch.tensor([1.0, 0, 0, 0], dtype=dtype)
+    quats = torch.randn(3, 4, generator=g, dtype=dtype) * 0.2 + torch.tensor(
+        [1.0, 0, 0, 0], dtype=dtype
+    )
     scales = torch.tensor([[0.3, 0.25, 1e-3], [0.2, 0.3, 1e-3], [0.3, 0.3, 1e-3]], dtype=dtype)
     op = torch.tensor([0.6, 0.5, 0.7], dtype=dtype)
     colors = torch.rand(3, 3, generator=g, dtype=dtype)
@@ -105,7 +115,9 @@ def test_gbuffer_gradients_match_finite_differences():
         from core.raster import quats_to_rotmat
 
         normals = quats_to_rotmat(quats)[:, :, 2]
-        gb, _ = render_gbuffer_tensors(means, quats, scales, op, colors, normals, w_r, cam, backend="reference")
+        gb, _ = render_gbuffer_tensors(
+            means, quats, scales, op, colors, normals, w_r, cam, backend="reference"
+        )
         return (
             (gb.depth * wts[..., 0]).sum()
             + (gb.base * wts[..., 1:4]).sum()

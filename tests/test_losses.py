@@ -70,7 +70,9 @@ def test_single_view_loss_zero_when_consistent_one_when_perpendicular():
 
 def test_bilinear_lookup():
     img = torch.arange(20, dtype=torch.float64).reshape(4, 5)
-    uv = torch.tensor([[0.5, 0.5], [1.5, 0.5], [1.0, 1.0], [4.5, 3.5], [4.6, 1.0], [float("nan"), 1.0]])
+    uv = torch.tensor(
+        [[0.5, 0.5], [1.5, 0.5], [1.0, 1.0], [4.5, 3.5], [4.6, 1.0], [float("nan"), 1.0]]
+    )
     v, inside = bilinear_lookup(img, uv.double())
     assert inside.tolist() == [True, True, True, True, False, False]
     torch.testing.assert_close(v[:4], torch.tensor([0.0, 1.0, 3.0, 19.0], dtype=torch.float64))
@@ -114,9 +116,13 @@ def test_multi_view_loss_gradients_finite_and_flow_to_both_depths():
     ref, nb = _two_views()
     n = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
     d_ref = _plane_depth_world(ref, n, torch.zeros(3, dtype=torch.float64)).requires_grad_(True)
-    d_nb = (_plane_depth_world(nb, n, torch.zeros(3, dtype=torch.float64)) * 1.01).requires_grad_(True)
+    d_nb = (_plane_depth_world(nb, n, torch.zeros(3, dtype=torch.float64)) * 1.01).requires_grad_(
+        True
+    )
     ones = torch.ones(32, 32, dtype=torch.bool)
-    loss, _ = multi_view_loss(d_ref, ones, ref, d_nb, ones, nb, n_pixels=200, generator=torch.Generator().manual_seed(0))
+    loss, _ = multi_view_loss(
+        d_ref, ones, ref, d_nb, ones, nb, n_pixels=200, generator=torch.Generator().manual_seed(0)
+    )
     loss.backward()
     assert torch.isfinite(d_ref.grad).all() and torch.isfinite(d_nb.grad).all()
     assert d_ref.grad.abs().sum() > 0 and d_nb.grad.abs().sum() > 0

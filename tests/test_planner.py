@@ -55,9 +55,9 @@ def test_user_override_wins_and_is_recorded(tmp_path):
 
 def test_invalid_override_is_a_config_error():
     scene = make_scene("sphere", "diffuse", n_train=4, n_test=1, size=16, samples=1)
-    with pytest.raises(ConfigError, match="plan_overrides.bogus"):
+    with pytest.raises(ConfigError, match=r"plan_overrides\.bogus"):
         plan_scene(scene, config_from_dict({"plan_overrides": {"bogus": True}}))
-    with pytest.raises(ConfigError, match="plan_overrides.sh_degree"):
+    with pytest.raises(ConfigError, match=r"plan_overrides\.sh_degree"):
         plan_scene(scene, config_from_dict({"plan_overrides": {"sh_degree": 7}}))
 
 

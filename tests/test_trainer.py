@@ -35,7 +35,7 @@ def _params(t: Trainer) -> dict[str, torch.Tensor]:
 
 def test_full_run_writes_every_output(tiny_scene, tmp_path):
     cfg = config_from_dict(TINY)
-    result, summary = train_scene(tiny_scene, tmp_path, cfg)
+    result, _ = train_scene(tiny_scene, tmp_path, cfg)
     assert result.status == "succeeded" and result.iteration == 40
     for name in (
         "checkpoint.pt",
@@ -63,7 +63,7 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
     assert "error_vs_time.png" in report and "| 40 |" in report
 
 
-class _Crash(RuntimeError):
+class _CrashError(RuntimeError):
     pass
 
 
@@ -76,11 +76,11 @@ def test_resume_after_crash_matches_uninterrupted_run(tiny_scene, tmp_path):
 
     def crash_after_20(event):
         if event["type"] == "checkpoint" and event["iteration"] == 20:
-            raise _Crash
+            raise _CrashError
 
     t1 = Trainer(tiny_scene, cfg, tmp_path / "run", on_event=crash_after_20)
     t1.setup(resume=False)
-    with pytest.raises(_Crash):
+    with pytest.raises(_CrashError):
         t1.train()
     assert load_checkpoint(tmp_path / "run" / "checkpoint.pt").extra["iteration"] == 20
     resumed_at = []

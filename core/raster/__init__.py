@@ -27,11 +27,11 @@ from core.raster.reference import rasterize_reference
 
 __all__ = [
     "BACKENDS",
-    "TileBins",
-    "bin_gaussians",
     "Projected",
     "RasterResult",
+    "TileBins",
     "available_backends",
+    "bin_gaussians",
     "covariances_from",
     "project_gaussians",
     "quats_to_rotmat",
@@ -123,7 +123,9 @@ def rasterize(
             raise ValueError("rasterize needs quats and scales, or covariances")
         covariances = covariances_from(quats, scales)
     if features.ndim != 2 or features.shape[0] != means.shape[0]:
-        raise ValueError(f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}")
+        raise ValueError(
+            f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}"
+        )
     name = resolve_backend(backend, means.device)
     W, H = camera.width, camera.height
     proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
@@ -131,3 +133,6 @@ def rasterize(
     fn = BACKENDS[name][1]
     feats, alpha = fn(proj, opacities, features, bins, W, H)
     return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
+
+
+from core.raster import cpu_backend as _cpu_backend  # noqa: E402,F401  registers "cpu"
