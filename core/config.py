@@ -45,7 +45,7 @@ class LossWeights(_Strict):
     """Eq. 15–16 weights and the multi-view thresholds."""
 
     l1: float = Field(0.8, ge=0, le=1, description="L_rgb = l1·L1 + (1 - l1)·D-SSIM")
-    scale: float = Field(100.0, ge=0, description="λ2, Eq. 7")
+    scale: float = Field(100.0, ge=0, description="λ2, Eq. 7 (scales measured in scene radii)")
     single_view: float = Field(0.2, ge=0, description="λ3, Eq. 11")
     multi_view: float = Field(0.1, ge=0, description="λ4, Eq. 14")
     multiview_max_angle_deg: float = Field(30.0, gt=0, le=180)

@@ -48,6 +48,11 @@ MIN_ALPHA = 0.05
 # Pixels whose blended normal is this close to perpendicular to the ray (|cos| below,
 # about 87.1°) have no planar depth: 1/cos amplifies any normal error beyond use.
 MIN_COS = 0.05
+# Near plane as a fraction of the median depth of the Gaussians in front of the
+# camera. A fixed near plane in world units makes rendering depend on the scene's
+# unit: at the rasteriser's 0.01 a scene in millimetres (object ~3e-3 away) was
+# culled entirely. Relative to the view's own depth scale it is unit-free.
+NEAR_FRACTION = 1e-3
 
 _C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
 
@@ -60,6 +65,19 @@ def facing_normals_camera(normals_world: Tensor, means: Tensor, camera: Camera) 
     mu_cam = means @ R.T + t
     sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
     return n_cam * sign
+
+
+def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
+    """Scale-free near plane: ``fraction`` × the median of the positive camera depths.
+
+    ``z_cam`` (N,) are the Gaussians' camera-space z. With none in front of the
+    camera nothing is visible and any positive value will do (1.0 is returned).
+    """
+    z = z_cam.detach()
+    z = z[torch.isfinite(z) & (z > 0)]
+    if z.numel() == 0:
+        return 1.0
+    return fraction * float(z.median())
 
 
 def planar_depth(
@@ -102,11 +120,14 @@ def render_gbuffer_tensors(
     backend: str = "auto",
     min_alpha: float = MIN_ALPHA,
     min_cos: float = MIN_COS,
+    near: float | None = None,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
 
     ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
-    are Eq. 6 normals (any sign: they are flipped toward the camera here).
+    are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
+    (world units) defaults to :func:`near_plane` of this view, so the same scene in
+    millimetres, metres or kilometres renders the same images.
     """
     n_cam = facing_normals_camera(normals_world, means, camera)
     R = camera.R.to(means)
@@ -114,8 +135,18 @@ def render_gbuffer_tensors(
     mu_cam = means @ R.T + t
     D = (n_cam * mu_cam).sum(-1, keepdim=True)
     feats = torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+    if near is None:
+        near = near_plane(mu_cam[:, 2])
     res = rasterize(
-        means, quats, scales, opacities, feats, camera, covariances=covariances, backend=backend
+        means,
+        quats,
+        scales,
+        opacities,
+        feats,
+        camera,
+        covariances=covariances,
+        backend=backend,
+        near=near,
     )
     f, alpha = res.features, res.alpha
     normal = f[..., _C_NORMAL]

@@ -121,6 +121,24 @@ def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
     return val, inside
 
 
+def _project_in_front(camera: Camera, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``camera.project`` with no division by ~0 in the graph: (uv, z, in_front).
+
+    Points not clearly in front of the camera (z ≤ 1e-4·|p_cam|, i.e. within 0.006°
+    of its focal plane, or non-finite) are swapped for a point one unit ahead before
+    projecting and flagged ``in_front = False``. Otherwise x/z with z = 0 gives an
+    infinite uv whose masked-out gradient is 0·∞ = NaN, which the trainer's guard
+    would turn into a skipped step.
+    """
+    with torch.no_grad():
+        pc = camera.world_to_camera_points(points)
+        z = pc[..., 2]
+        front = torch.isfinite(pc).all(-1) & (z > 1e-4 * pc.norm(dim=-1))
+    ahead = (camera.center + camera.forward).to(points)
+    uv, z = camera.project(torch.where(front[..., None], points, ahead))
+    return uv, z, front
+
+
 def multi_view_loss(
     depth_ref: Tensor,
     valid_ref: Tensor,
@@ -153,15 +171,15 @@ def multi_view_loss(
     uv_r = torch.stack([(idx % W).to(dtype) + 0.5, (idx // W).to(dtype) + 0.5], dim=-1)
     d_r = depth_ref.reshape(-1)[idx]
     P = cam_ref.backproject(uv_r, d_r)
-    uv_n, z_n = cam_nb.project(P)
+    uv_n, z_n, front_n = _project_in_front(cam_nb, P)
     d_n, inside = bilinear_lookup(depth_nb, uv_n)
     v_n, _ = bilinear_lookup(valid_nb.to(dtype), uv_n)
-    ok = inside & (z_n > 0) & (v_n > 0.999) & (d_n > 0)
+    ok = front_n & inside & (z_n > 0) & (v_n > 0.999) & (d_n > 0)
     d_n = torch.where(ok, d_n, torch.ones_like(d_n))
     uv_n_safe = torch.where(ok[:, None], uv_n, torch.zeros_like(uv_n))
     P2 = cam_nb.backproject(uv_n_safe, d_n)
-    uv_back, z_back = cam_ref.project(P2)
-    ok = ok & (z_back > 0)
+    uv_back, z_back, front_back = _project_in_front(cam_ref, P2)
+    ok = ok & front_back & (z_back > 0)
     # sqrt(·+1e-12): the norm's gradient is undefined at exactly zero error.
     err = ((uv_back - uv_r) ** 2).sum(-1).add(1e-12).sqrt()
     keep = ok & torch.isfinite(err) & (err <= max_error_px)

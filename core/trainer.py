@@ -244,6 +244,20 @@ class Trainer:
             return gb.depth, gb.depth_valid
         return gb.center_depth, gb.alpha > 0.05
 
+    def _grads_ok(self) -> bool:
+        """Every gradient finite *and* below √(dtype max): a finite gradient whose square
+        overflows would put Inf into Adam's second moment, freeze that parameter for
+        good and make every later checkpoint refuse to save (NaN-free by contract)."""
+        for o in self.optimizers.values():
+            for grp in o.param_groups:
+                for p in grp["params"]:
+                    if p.grad is None or p.grad.numel() == 0:
+                        continue
+                    limit = math.sqrt(torch.finfo(p.grad.dtype).max)
+                    if not float(p.grad.abs().amax()) < limit:  # NaN compares False
+                        return False
+        return True
+
     def step(self) -> dict[str, float]:
         cfg, it = self.cfg, self.iteration
         phase = self.current_phase()
@@ -258,7 +272,9 @@ class Trainer:
         target = view.composited(bg)
         terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
         if phase.scale_loss and cfg.loss.scale > 0:
-            terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales)
+            # Eq. 7 in units of the scene radius: in world units the same capture in
+            # millimetres or kilometres would weigh flatness 1e6× differently.
+            terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales / self.radius)
         depth, valid = self._geometry_depth(gb, phase)
         if view.mask is not None:
             valid = valid & (view.mask > 0.5)
@@ -285,12 +301,7 @@ class Trainer:
         ok = bool(torch.isfinite(loss))
         if ok:
             loss.backward()
-            ok = all(
-                p.grad is None or bool(torch.isfinite(p.grad).all())
-                for o in self.optimizers.values()
-                for grp in o.param_groups
-                for p in grp["params"]
-            )
+            ok = self._grads_ok()
         if not ok:
             # The NaN guard: a non-finite loss or gradient never reaches the parameters.
             self.skipped_steps += 1

@@ -105,10 +105,21 @@ def project_gaussians(
     ).reshape(-1, 2, 3)
     cov_cam = R @ covs @ R.T
     cov2d = J @ cov_cam @ J.transpose(1, 2)
-    cov2d = cov2d + eps2d * torch.eye(2, dtype=dtype, device=device)
-
-    a, b, c = cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]
-    det = a * c - b * b
+    # Σ is singular by design (Eq. 7 flattens every Gaussian), so a planar Gaussian
+    # seen edge-on projects to a rank-1 cov2d, and rounding leaves it indefinite by
+    # ~eps·λmax: past ~1e3 px in float32 that outweighs the low-pass, and a·c − b²
+    # cancels to garbage (footprints vanished or came out non-positive-definite).
+    # Clamp cov2d to the PSD cone (|b| ≤ √(ac)·(1 − 4ε): a rounding-size change that
+    # keeps the *stored* entries PSD despite the rounding of √) and form the
+    # determinant of the filtered matrix as det₀ + eps·(a + c) + eps² with det₀ ≥ 0,
+    # so it is > 0 for every finite footprint.
+    a0 = cov2d[:, 0, 0].clamp_min(0.0)
+    c0 = cov2d[:, 1, 1].clamp_min(0.0)
+    lim = (torch.sqrt(a0 * c0) * (1.0 - 4.0 * torch.finfo(dtype).eps)).detach()
+    b = torch.minimum(torch.maximum(cov2d[:, 0, 1], -lim), lim)
+    a, c = a0 + eps2d, c0 + eps2d
+    cov2d = torch.stack([a, b, b, c], dim=-1).reshape(-1, 2, 2)
+    det = (a0 * c0 - b * b).clamp_min(0.0) + eps2d * (a0 + c0) + eps2d * eps2d
     ok = in_depth & (det > 0) & torch.isfinite(det)
     det_safe = torch.where(ok, det, torch.ones_like(det))
     conics = torch.stack([c / det_safe, -b / det_safe, a / det_safe], dim=-1)

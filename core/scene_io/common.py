@@ -315,9 +315,14 @@ def _load_one(spec: ViewSpec, opts: LoadOptions, scale: float) -> View:
             "(every image must match its camera; images of one camera must share a size)",
             file=spec.image,
         )
+    # clamp keeps NaN: a non-finite alpha or mask would make every training target NaN
+    if alpha is not None and not bool(torch.isfinite(alpha).all()):
+        raise SceneError("alpha channel contains NaN or Inf values", file=spec.image)
     mask = alpha.clamp(0.0, 1.0) if alpha is not None else None
     if spec.mask is not None:
         mask = read_mask(spec.mask)
+        if not bool(torch.isfinite(mask).all()):
+            raise SceneError("mask contains NaN or Inf values", file=spec.mask)
         mh, mw = mask.shape
         if (mw, mh) != (w, h):
             if abs(mw * h - mh * w) > max(mw, w):  # different aspect: not the same picture
