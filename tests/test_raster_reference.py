@@ -150,3 +150,17 @@ def test_memory_bounded_chunking_gives_same_result():
     f2, a2 = rasterize_reference(proj, op, feats, bins, 24, 24, chunk=7)
     torch.testing.assert_close(f2, r1.features, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(a2, r1.alpha, rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize(("size", "n"), [(37, 400), (64, 3000)])
+def test_compiled_binning_equals_torch_binning(size, n):
+    from core.raster.binning import bin_gaussians_torch
+
+    cam = identity_camera(size)
+    means, quats, scales, op, _ = _random_scene(n, 11, torch.float32)
+    means[: n // 10, 2] = -1.0  # some behind the camera: culled
+    p = project_gaussians(means, covariances_from(quats, scales), cam)
+    a = bin_gaussians_torch(p.means2d, p.depths, p.radii, size, size)
+    b = bin_gaussians(p.means2d, p.depths, p.radii, size, size)
+    assert torch.equal(a.gauss_ids, b.gauss_ids) and torch.equal(a.offsets, b.offsets)
+    assert a.gauss_ids.numel() > n  # Gaussians spanning several tiles are listed in each

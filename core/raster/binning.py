@@ -9,7 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
+from numba import njit
 from torch import Tensor
 
 
@@ -49,7 +51,58 @@ def tile_ranges(
 def bin_gaussians(
     means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int = 16
 ) -> TileBins:
-    """Build the per-tile, depth-sorted Gaussian lists (vectorised, no Python loop)."""
+    """Per-tile, depth-sorted Gaussian lists; a compiled counting sort on the CPU.
+
+    Both paths give identical lists (tested); the torch one also serves CUDA tensors.
+    """
+    if means2d.device.type == "cpu":
+        return _bin_gaussians_cpu(means2d, depths, radii, width, height, tile_size)
+    return bin_gaussians_torch(means2d, depths, radii, width, height, tile_size)
+
+
+@njit(cache=True, nogil=True)
+def _counting_bin(order, x0, x1, y0, y1, vis, tiles_x, n_tiles):  # pragma: no cover - numba
+    """Two passes over the Gaussians in depth order: count per tile, then place.
+
+    Placing in global depth order keeps each tile's list sorted without any sort.
+    """
+    counts = np.zeros(n_tiles + 1, np.int64)
+    for g in range(order.shape[0]):
+        if vis[g]:
+            for ty in range(y0[g], y1[g] + 1):
+                for tx in range(x0[g], x1[g] + 1):
+                    counts[ty * tiles_x + tx + 1] += 1
+    for t in range(n_tiles):
+        counts[t + 1] += counts[t]
+    fill = counts[:-1].copy()
+    ids = np.empty(counts[n_tiles], np.int64)
+    for k in range(order.shape[0]):
+        g = order[k]
+        if vis[g]:
+            for ty in range(y0[g], y1[g] + 1):
+                for tx in range(x0[g], x1[g] + 1):
+                    t = ty * tiles_x + tx
+                    ids[fill[t]] = g
+                    fill[t] += 1
+    return ids, counts
+
+
+def _bin_gaussians_cpu(
+    means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int
+) -> TileBins:
+    tiles_x = (width + tile_size - 1) // tile_size
+    tiles_y = (height + tile_size - 1) // tile_size
+    x0, x1, y0, y1 = (t.numpy() for t in tile_ranges(means2d, radii, width, height, tile_size))
+    order = torch.argsort(depths.detach(), stable=True).numpy()
+    vis = (radii > 0).numpy()
+    ids, offsets = _counting_bin(order, x0, x1, y0, y1, vis, tiles_x, tiles_x * tiles_y)
+    return TileBins(torch.from_numpy(ids), torch.from_numpy(offsets), tiles_x, tiles_y, tile_size)
+
+
+def bin_gaussians_torch(
+    means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int = 16
+) -> TileBins:
+    """Build the per-tile, depth-sorted Gaussian lists (vectorised torch, any device)."""
     device = means2d.device
     tiles_x = (width + tile_size - 1) // tile_size
     tiles_y = (height + tile_size - 1) // tile_size
