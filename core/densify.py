@@ -50,6 +50,7 @@ RESET_OPACITY = 0.01
 # resets closer than this keep every Gaussian transparent, so short runs space
 # them at least this far apart (and runs shorter than this get none).
 MIN_RESET_INTERVAL = 1000
+MIN_INTERVAL = 10
 SPLIT_SAMPLES = 2
 SPLIT_SCALE_DIVISOR = 0.8 * SPLIT_SAMPLES  # 1.6
 WORLD_SIZE_FRACTION = 0.1  # prune when max scale > this × scene radius
@@ -76,9 +77,12 @@ class DensifyStrategy:
         self.start = cfg.scaled(d.start)
         self.stop = cfg.scaled(d.stop)
         # The interval is a number of views to average gradients over, not a point on
-        # the schedule: it stays as configured, shortened only so that a short run
-        # still gets about ten densification steps.
-        self.interval = max(1, min(d.interval, (self.stop - self.start) // 10))
+        # the schedule: it stays as configured, shortened so that a short run still
+        # gets about ten densification steps, but never below MIN_INTERVAL views (a
+        # gradient averaged over one or two views selects almost everything).
+        self.interval = max(
+            min(MIN_INTERVAL, d.interval), min(d.interval, (self.stop - self.start) // 10)
+        )
         self.reset_every = (
             max(MIN_RESET_INTERVAL, cfg.scaled(d.opacity_reset_interval))
             if d.opacity_reset_interval > 0

@@ -107,6 +107,9 @@ def test_marks_are_scaled_and_reset_fires_on_schedule() -> None:
     # ...and shrinks only so that a very short run still densifies about ten times.
     short = DensifyStrategy(config(iterations=600, start=500), scene_radius=1.0)
     assert short.interval == (short.stop - short.start) // 10
+    # ...but never below 10 views: a 20-iteration run does not densify at all.
+    tiny = DensifyStrategy(config(iterations=20, start=0), scene_radius=1.0)
+    assert tiny.interval == 10 and not any(tiny.is_refine_step(i) for i in range(20))
     # gsplat 1.5.3 writes `step % every == 0 & step > 0`, which is always False.
     # Resets are never closer than MIN_RESET_INTERVAL (the scaled 300 would starve opacity).
     assert [i for i in range(3_000) if s.is_reset_step(i)] == [1000]

@@ -1,0 +1,122 @@
+"""The app factory: settings → database (migrated), store, queue, routers under ``/v1``."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+from datetime import UTC, datetime, timedelta
+from typing import Any
+
+import anyio
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+from sqlalchemy import update
+
+from api.auth import PrincipalCache
+from api.db import Database
+from api.jobs_runner import requeue_orphans
+from api.migrate import upgrade
+from api.models import Scene, SceneState
+from api.problems import PROBLEM_JSON, install_handlers
+from api.queue import JobQueue, LocalQueue, make_queue
+from api.routers import artifacts, jobs, keys, scenes
+from api.settings import Settings, get_settings
+from api.store import ArtifactStore, LocalStore
+from api.timing import ServerTimingMiddleware
+
+log = logging.getLogger("glint.api")
+
+
+def _recover(database: Database, queue: JobQueue, settings: Settings) -> None:
+    """Undo what a crashed process left half done (scenes mid-validation, local jobs)."""
+    local = isinstance(queue, LocalQueue)
+    cutoff = datetime.now(UTC) - timedelta(seconds=settings.stale_after_s)
+    with database.write() as s:
+        q = update(Scene).where(Scene.state == SceneState.VALIDATING)
+        if not local:  # other replicas may be validating right now
+            q = q.where(Scene.updated_at < cutoff)
+        s.execute(q.values(state=SceneState.OPEN, updated_at=datetime.now(UTC)))
+    if local:  # this process is the only runner: its orphans are ours to restart
+        for job_id in requeue_orphans(database):
+            queue.enqueue(job_id)
+
+
+def _tidy_openapi(app: FastAPI) -> dict[str, Any]:
+    """Errors are problem+json only; FastAPI's default 422 schema is replaced by Problem."""
+    if app.openapi_schema:
+        return app.openapi_schema
+    schema = get_openapi(
+        title=app.title,
+        version=app.version,
+        description=app.description,
+        routes=app.routes,
+        tags=app.openapi_tags,
+    )
+    for path_item in schema.get("paths", {}).values():
+        for op in path_item.values():
+            for code, resp in op.get("responses", {}).items():
+                content = resp.get("content", {})
+                if code.startswith(("4", "5")):
+                    resp["content"] = {
+                        PROBLEM_JSON: {"schema": {"$ref": "#/components/schemas/Problem"}}
+                    }
+                elif PROBLEM_JSON in content:
+                    content.pop(PROBLEM_JSON)
+    comps = schema.get("components", {}).get("schemas", {})
+    comps.pop("HTTPValidationError", None)
+    comps.pop("ValidationError", None)
+    app.openapi_schema = schema
+    return schema
+
+
+def create_app(
+    settings: Settings | None = None,
+    *,
+    queue: JobQueue | None = None,
+    store: ArtifactStore | None = None,
+) -> FastAPI:
+    """The ASGI app; tests pass their own settings (tmp dirs) and a queue double."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
+        database = Database(settings.db_url)
+        if settings.auto_migrate:
+            upgrade(database.engine)
+        app.state.database = database
+        app.state.store = store or LocalStore(settings.store_root)
+        if isinstance(app.state.store, LocalStore):
+            app.state.store.sweep_tmp()
+        app.state.queue = queue or make_queue(settings)
+        _recover(database, app.state.queue, settings)
+        try:
+            yield
+        finally:
+            close = getattr(app.state.queue, "close", None)
+            if queue is None and callable(close):
+                close()
+            database.dispose()
+
+    from core import __version__
+
+    app = FastAPI(
+        title="Glint API",
+        version=__version__,
+        description="PGSR-DR reconstruction as a service: upload a scene, validate it, "
+        "train it, follow the job, download the artifacts. All errors are RFC 9457 "
+        "problem details (application/problem+json). Authenticate with "
+        "`Authorization: Bearer <API key>`.",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+    app.state.validation_slots = threading.BoundedSemaphore(settings.validation_concurrency)
+    app.state.principals = PrincipalCache(settings.auth_cache_s)
+    install_handlers(app)
+    app.add_middleware(ServerTimingMiddleware)
+    for module in (keys, scenes, jobs, artifacts):
+        app.include_router(module.router, prefix="/v1")
+    app.openapi = lambda: _tidy_openapi(app)  # type: ignore[method-assign]
+    return app

@@ -1,0 +1,1 @@
+"""Alembic migrations of the Glint database (``script_location = api:migrations``)."""

@@ -1,0 +1,1 @@
+"""One router module per resource: keys (and health), scenes, jobs, artifacts."""

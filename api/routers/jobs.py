@@ -1,0 +1,311 @@
+"""Jobs: create on a ready scene, read (or follow as server-sent events), cancel, resume.
+
+State machine (the database is the source of truth; the queue only delivers ids)::
+
+    queued ──► running ──► succeeded | failed | cancelled
+      │                                   │       │
+      └────────── cancel ──► cancelled    └─ resume ─► queued
+
+Cancelling a queued job is immediate; a running job gets ``cancel_requested`` and its
+runner stops at the next check (saving a checkpoint). Resume re-queues a cancelled or
+failed job, which continues from the run folder's checkpoint.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import re
+from collections.abc import AsyncIterator
+from datetime import UTC, datetime
+from typing import Annotated
+
+import anyio
+from fastapi import APIRouter, Header, Path, Query, Request, Response
+from fastapi.concurrency import run_in_threadpool
+from fastapi.responses import StreamingResponse
+from sqlalchemy import func, select
+from sqlalchemy.orm import Session
+
+from api.auth import Principal
+from api.db import Database
+from api.deps import (
+    DatabaseDep,
+    JsonBody,
+    PrincipalDep,
+    QueueDep,
+    SessionDep,
+    SettingsDep,
+    StoreDep,
+)
+from api.models import Job, JobState, SceneState, new_id
+from api.problems import ApiError, FieldError, not_found, responses
+from api.queue import JobQueue
+from api.routers.scenes import owned_scene
+from api.schemas import JobCreate, JobOut, JobStateName, Page
+from api.store import job_key
+from api.views import job_out
+
+router = APIRouter(prefix="/jobs", tags=["jobs"])
+log = logging.getLogger("glint.api")
+
+JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]
+AUTH = (401, 404)
+DEVICE = re.compile(r"^(cpu|cuda(:\d{1,2})?)$")
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def owned_job(session: Session, principal: Principal, job_id: str, *, lock: bool = False) -> Job:
+    q = select(Job).where(Job.id == job_id, Job.owner == principal.owner)
+    if lock:
+        q = q.with_for_update()
+    job = session.scalar(q)
+    if job is None:
+        raise not_found("job", job_id)
+    return job
+
+
+def _etag(job: Job) -> str:
+    return f'W/"{job.id}-{job.version}"'
+
+
+def _enqueue(queue: JobQueue, job_id: str) -> None:
+    try:
+        queue.enqueue(job_id)
+    except Exception as exc:
+        log.exception("enqueue of job %s failed", job_id)
+        raise ApiError(
+            503,
+            "queue-unavailable",
+            f"job '{job_id}' is saved as queued but could not be handed to the queue "
+            f"({type(exc).__name__}); resubmit with POST /v1/jobs/{job_id}/resume later",
+        ) from None
+
+
+@router.post(
+    "",
+    status_code=201,
+    response_model=JobOut,
+    responses=responses(400, *AUTH, 409, 415, 422, 503),
+    dependencies=[JsonBody],
+    summary="Create a training job on a ready scene",
+)
+def create_job(
+    body: JobCreate, principal: PrincipalDep, session: SessionDep, queue: QueueDep
+) -> JobOut:
+    if not DEVICE.match(body.config.device):
+        raise ApiError(
+            422,
+            "validation-error",
+            f"invalid request: body.config.device: '{body.config.device}' is not a device "
+            "(expected 'cpu', 'cuda' or 'cuda:N')",
+            errors=[FieldError(field="body.config.device", message="expected cpu, cuda or cuda:N")],
+        )
+    scene = owned_scene(session, principal, body.scene_id)
+    if scene.state != SceneState.READY:
+        raise ApiError(
+            409,
+            "scene-not-ready",
+            f"scene '{scene.id}' is {scene.state}; commit it (and pass validation) first",
+        )
+    cfg = body.config
+    job = Job(
+        id=new_id("job"),
+        owner=principal.owner,
+        scene_id=scene.id,
+        config=cfg.model_dump(mode="json"),
+        total_iterations=cfg.iterations,
+    )
+    session.add(job)
+    session.commit()  # the row exists before any runner can be handed its id
+    _enqueue(queue, job.id)
+    return job_out(job)
+
+
+@router.get("", response_model=Page[JobOut], responses=responses(401, 422), summary="List jobs")
+def list_jobs(
+    principal: PrincipalDep,
+    session: SessionDep,
+    settings: SettingsDep,
+    state: Annotated[list[JobStateName] | None, Query(description="any of these states")] = None,
+    scene_id: Annotated[str | None, Query(max_length=40)] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 50,
+    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+) -> Page[JobOut]:
+    limit = min(limit, settings.page_size_max)
+    where = [Job.owner == principal.owner]
+    if state:
+        where.append(Job.state.in_(state))
+    if scene_id:
+        where.append(Job.scene_id == scene_id)
+    total = session.scalar(select(func.count()).select_from(Job).where(*where)) or 0
+    rows = session.scalars(
+        select(Job)
+        .where(*where)
+        .order_by(Job.created_at.desc(), Job.id)
+        .limit(limit)
+        .offset(offset)
+    )
+    return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
+
+
+@router.get(
+    "/{job_id}",
+    response_model=JobOut,
+    responses={**responses(*AUTH, 422), 304: {"description": "Not modified (If-None-Match)"}},
+    summary="Get a job: state, phase, progress, metrics, ETA",
+)
+def get_job(
+    job_id: JobId,
+    principal: PrincipalDep,
+    session: SessionDep,
+    response: Response,
+    if_none_match: Annotated[str | None, Header(max_length=1024)] = None,
+) -> JobOut | Response:
+    job = owned_job(session, principal, job_id)
+    etag = _etag(job)
+    if if_none_match and etag in [t.strip() for t in if_none_match.split(",")]:
+        return Response(status_code=304, headers={"ETag": etag})
+    response.headers["ETag"] = etag
+    response.headers["Cache-Control"] = "no-cache"
+    return job_out(job)
+
+
+@router.post(
+    "/{job_id}/cancel",
+    response_model=JobOut,
+    responses=responses(*AUTH, 409, 422),
+    summary="Cancel: a queued job at once, a running one at its next check",
+)
+def cancel_job(job_id: JobId, principal: PrincipalDep, session: SessionDep) -> JobOut:
+    job = owned_job(session, principal, job_id, lock=True)
+    now = _now()
+    if job.state == JobState.QUEUED:
+        job.state, job.finished_at = JobState.CANCELLED, now
+    elif job.state == JobState.RUNNING:
+        job.cancel_requested = True
+    else:
+        raise ApiError(409, "job-finished", f"job '{job_id}' is already {job.state}")
+    job.updated_at = now
+    job.version += 1
+    session.commit()
+    return job_out(job)
+
+
+@router.post(
+    "/{job_id}/resume",
+    response_model=JobOut,
+    responses=responses(*AUTH, 409, 422, 503),
+    summary="Re-queue a cancelled or failed job; it continues from its last checkpoint",
+)
+def resume_job(
+    job_id: JobId, principal: PrincipalDep, session: SessionDep, queue: QueueDep
+) -> JobOut:
+    job = owned_job(session, principal, job_id, lock=True)
+    if job.state not in (JobState.CANCELLED, JobState.FAILED):
+        raise ApiError(
+            409,
+            "job-not-resumable",
+            f"job '{job_id}' is {job.state}; only cancelled or failed jobs can be resumed",
+        )
+    job.state, job.cancel_requested, job.error = JobState.QUEUED, False, None
+    job.finished_at, job.updated_at = None, _now()
+    job.version += 1
+    session.commit()
+    _enqueue(queue, job.id)
+    return job_out(job)
+
+
+@router.delete(
+    "/{job_id}",
+    status_code=204,
+    response_class=Response,
+    responses=responses(*AUTH, 409, 422),
+    summary="Delete a finished job with its run folder and artifacts",
+)
+def delete_job(
+    job_id: JobId, principal: PrincipalDep, session: SessionDep, store: StoreDep
+) -> Response:
+    job = owned_job(session, principal, job_id, lock=True)
+    if job.state not in JobState.TERMINAL:
+        raise ApiError(409, "job-active", f"job '{job_id}' is {job.state}; cancel it first")
+    session.delete(job)
+    session.commit()
+    store.delete(job_key(job_id))
+    return Response(status_code=204)
+
+
+# --- server-sent events --------------------------------------------------------------
+
+
+def _snapshot(database: Database, owner: str, job_id: str) -> JobOut | None:
+    with database.read() as s:
+        job = s.scalar(select(Job).where(Job.id == job_id, Job.owner == owner))
+        return None if job is None else job_out(job)
+
+
+def _sse(event: str, data: str, ident: int | None = None) -> str:
+    head = f"id: {ident}\n" if ident is not None else ""
+    return (
+        head + f"event: {event}\n" + "".join(f"data: {line}\n" for line in data.split("\n")) + "\n"
+    )
+
+
+@router.get(
+    "/{job_id}/events",
+    response_class=StreamingResponse,
+    responses={
+        200: {
+            "description": "`event: job` with the job (as GET /v1/jobs/{id}) on every change, "
+            "`id` = its version; `event: end` after a terminal state, then the stream closes.",
+            "content": {"text/event-stream": {"schema": {"type": "string"}}},
+        },
+        **responses(*AUTH, 422),
+    },
+    summary="Follow a job as server-sent events",
+)
+async def job_events(
+    job_id: JobId,
+    request: Request,
+    principal: PrincipalDep,
+    database: DatabaseDep,
+    settings: SettingsDep,
+    last_event_id: Annotated[str | None, Header(max_length=32)] = None,
+) -> StreamingResponse:
+    first = await run_in_threadpool(_snapshot, database, principal.owner, job_id)
+    if first is None:
+        raise not_found("job", job_id)
+    seen = int(last_event_id) if last_event_id and last_event_id.isdigit() else None
+
+    async def stream() -> AsyncIterator[str]:
+        nonlocal seen
+        yield f"retry: {int(settings.sse_poll_s * 4000)}\n\n"
+        snap: JobOut | None = first
+        quiet_since = anyio.current_time()
+        while True:
+            if snap is None:  # deleted while followed
+                yield _sse("end", json.dumps({"state": "deleted"}))
+                return
+            if snap.version != seen:
+                seen = snap.version
+                quiet_since = anyio.current_time()
+                yield _sse("job", snap.model_dump_json(), snap.version)
+            if snap.state in JobState.TERMINAL:
+                yield _sse("end", json.dumps({"state": snap.state}))
+                return
+            if anyio.current_time() - quiet_since >= settings.sse_keepalive_s:
+                quiet_since = anyio.current_time()
+                yield ": keepalive\n\n"
+            await anyio.sleep(settings.sse_poll_s)
+            if await request.is_disconnected():
+                return
+            snap = await run_in_threadpool(_snapshot, database, principal.owner, job_id)
+
+    return StreamingResponse(
+        stream(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-cache", "X-Accel-Buffering": "no"},
+    )

@@ -1,0 +1,91 @@
+"""Health (no key needed) and API keys: who am I, list, create another, revoke.
+
+Keys are created on the command line (``glint keys create NAME``) for a new owner;
+an owner holding a key can mint more for itself here (to rotate without downtime)
+and revoke them. A new key's secret appears once, in the creation response.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Request, Response
+from sqlalchemy import select, text
+
+from api import auth
+from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep
+from api.models import ApiKey
+from api.problems import ApiError, not_found, responses
+from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me
+
+router = APIRouter(tags=["keys"])
+
+
+@router.get(
+    "/health",
+    response_model=Health,
+    responses=responses(503),
+    summary="Liveness and database reachability (no key needed)",
+)
+def health(database: DatabaseDep) -> Health:
+    from core import __version__
+
+    try:
+        with database.read() as s:
+            s.execute(text("SELECT 1"))
+    except Exception as exc:
+        raise ApiError(
+            503, "database-unavailable", f"database unreachable: {type(exc).__name__}"
+        ) from None
+    return Health(status="ok", database="ok", version=__version__)
+
+
+@router.get("/keys/me", response_model=Me, responses=responses(401), summary="The caller's owner")
+def me(principal: PrincipalDep) -> Me:
+    return Me(owner=principal.owner, key_id=principal.key_id)
+
+
+@router.get("/keys", response_model=list[KeyOut], responses=responses(401), summary="List my keys")
+def list_keys(principal: PrincipalDep, session: SessionDep) -> list[KeyOut]:
+    rows = session.scalars(
+        select(ApiKey).where(ApiKey.owner == principal.owner).order_by(ApiKey.created_at)
+    )
+    return [KeyOut.model_validate(r) for r in rows]
+
+
+@router.post(
+    "/keys",
+    status_code=201,
+    response_model=KeyCreated,
+    responses=responses(400, 401, 415, 422),
+    dependencies=[JsonBody],
+    summary="Create another key for my owner (the key is shown once)",
+)
+def create_key(body: KeyCreate, principal: PrincipalDep, session: SessionDep) -> KeyCreated:
+    row, key = auth.create_key(session, principal.owner, body.name)
+    session.commit()
+    return KeyCreated(**KeyOut.model_validate(row).model_dump(), key=key)
+
+
+@router.delete(
+    "/keys/{key_id}",
+    status_code=204,
+    response_class=Response,
+    responses=responses(401, 404, 422),
+    summary="Revoke one of my keys (may be the one in use)",
+)
+def revoke_key(
+    key_id: Annotated[str, Path(max_length=40)],
+    request: Request,
+    principal: PrincipalDep,
+    session: SessionDep,
+) -> Response:
+    row = session.scalar(select(ApiKey).where(ApiKey.id == key_id, ApiKey.owner == principal.owner))
+    if row is None:
+        raise not_found("key", key_id)
+    if row.revoked_at is None:
+        row.revoked_at = datetime.now(UTC)
+        session.commit()
+    request.app.state.principals.forget(key_id)
+    return Response(status_code=204)

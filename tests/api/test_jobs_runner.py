@@ -1,0 +1,156 @@
+"""run_job's claim, fencing and cancel semantics, against a real database (no HTTP)."""
+
+from __future__ import annotations
+
+import threading
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+
+import pytest
+from sqlalchemy import select
+
+from api.db import Database
+from api.jobs_runner import _JobReporter, claim, json_safe, run_job
+from api.migrate import upgrade
+from api.models import Job, JobState, Scene, SceneState, new_id
+from tests.api.support import make_settings
+
+
+@pytest.fixture(params=["sqlite", "postgresql"])
+def database(request: pytest.FixtureRequest, tmp_path: Path):  # type: ignore[no-untyped-def]
+    url = f"sqlite:///{tmp_path / 'runner.db'}"
+    if request.param == "postgresql":
+        url = request.getfixturevalue("pg_url")
+    db = Database(url)
+    upgrade(db.engine)
+    yield db
+    db.dispose()
+
+
+def _job(db: Database, state: str = JobState.QUEUED, **values) -> str:
+    sid, jid = new_id("scn"), new_id("job")
+    with db.write() as s:
+        s.add(Scene(id=sid, owner="t", name="s", state=SceneState.READY))
+        s.flush()
+        s.add(Job(id=jid, owner="t", scene_id=sid, config={}, total_iterations=10, state=state))
+        s.flush()
+        if values:
+            job = s.get(Job, jid)
+            for k, v in values.items():
+                setattr(job, k, v)
+    return jid
+
+
+def _get(db: Database, jid: str) -> Job:
+    with db.read() as s:
+        job = s.scalar(select(Job).where(Job.id == jid))
+        assert job is not None
+        return job
+
+
+def test_claim_once(database: Database) -> None:
+    jid = _job(database)
+    lease = claim(database, jid, 60, "w1")
+    assert lease
+    job = _get(database, jid)
+    assert (job.state, job.lease, job.worker, job.attempts) == ("running", lease, "w1", 1)
+    assert claim(database, jid, 60, "w2") is None
+
+
+def test_concurrent_claims_have_one_winner(database: Database) -> None:
+    jid = _job(database)
+    leases: list[str | None] = []
+    barrier = threading.Barrier(6)
+
+    def go(i: int) -> None:
+        barrier.wait()
+        leases.append(claim(database, jid, 60, f"w{i}"))
+
+    threads = [threading.Thread(target=go, args=(i,)) for i in range(6)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    winners = [x for x in leases if x]
+    assert len(winners) == 1
+    assert _get(database, jid).lease == winners[0]
+
+
+@pytest.mark.parametrize("state", [JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED])
+def test_finished_jobs_are_not_claimable(database: Database, state: str, tmp_path: Path) -> None:
+    jid = _job(database, state)
+    settings = make_settings(tmp_path, database.url)
+    assert run_job(jid, settings, database=database) is None
+    job = _get(database, jid)
+    assert job.state == state and job.attempts == 0 and job.version == 1
+
+
+def test_stale_running_job_is_taken_over_and_old_runner_fenced(database: Database) -> None:
+    jid = _job(database)
+    old = claim(database, jid, 60, "dead")
+    assert old
+    settings = make_settings(Path("/nonexistent"), database.url)
+    old_reporter = _JobReporter(database, jid, old, settings)
+    assert claim(database, jid, 60, "eager") is None  # heartbeat is fresh: hands off
+    with database.write() as s:
+        s.get(Job, jid).heartbeat_at = datetime.now(UTC) - timedelta(seconds=120)
+    new = claim(database, jid, 60, "rescuer")
+    assert new and new != old
+    assert _get(database, jid).attempts == 2
+    # the old runner wakes up: its writes do nothing and it is told to stop
+    old_reporter.on_event(
+        {
+            "type": "progress",
+            "iteration": 9,
+            "total": 10,
+            "phase": "rgb",
+            "n_gaussians": 5,
+            "loss": 1.0,
+            "elapsed": 1.0,
+            "eta": 0.1,
+            "psnr": None,
+        }
+    )
+    assert old_reporter.lost
+    assert old_reporter.should_stop()
+    job = _get(database, jid)
+    assert job.iteration == 0 and job.lease == new and job.worker == "rescuer"
+
+
+def test_progress_is_throttled_and_cancel_is_seen(database: Database) -> None:
+    jid = _job(database)
+    lease = claim(database, jid, 60, "w")
+    assert lease
+    settings = make_settings(Path("/nonexistent"), database.url, progress_interval_s=60.0)
+    rep = _JobReporter(database, jid, lease, settings)
+    event = {
+        "type": "progress",
+        "total": 10,
+        "phase": "rgb",
+        "n_gaussians": 7,
+        "loss": 0.5,
+        "elapsed": 2.0,
+        "eta": float("nan"),
+        "psnr": None,
+    }
+    v0 = _get(database, jid).version
+    for it in range(1, 6):
+        rep.on_event({**event, "iteration": it})
+    job = _get(database, jid)
+    assert job.iteration == 1 and job.version == v0 + 1  # the first write, then throttled
+    assert job.eta_s is None  # NaN is stored as null
+    rep.on_event({**event, "iteration": 10})  # the last iteration always goes out
+    assert _get(database, jid).iteration == 10
+    assert not rep.should_stop()
+    with database.write() as s:
+        s.get(Job, jid).cancel_requested = True
+    rep.last_poll = 0.0
+    assert rep.should_stop() and rep.cancelled and not rep.lost
+
+
+def test_json_safe() -> None:
+    assert json_safe({"a": float("inf"), "b": [1.0, float("nan")], "c": (2, "x")}) == {
+        "a": None,
+        "b": [1.0, None],
+        "c": [2, "x"],
+    }
