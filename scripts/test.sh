@@ -1,8 +1,14 @@
 #!/usr/bin/env bash
 # The test command: sets up everything on a fresh machine, then lints and tests.
+#   venv + packages (scripts/bootstrap.sh), services the integration tests talk to
+#   (scripts/services.sh: Redis), a browser for the viewer tests (scripts/browser.sh:
+#   Debian's Chromium), then ruff and pytest.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
+for s in scripts/services.sh scripts/browser.sh; do
+    if [ -f "$s" ]; then bash "$s"; fi
+done
 . .venv/bin/activate
 echo "== ruff"
 ruff check .
