@@ -172,6 +172,7 @@ class _JobReporter:
             self.pending["plan"] = json_safe(event.get("plan"))
         elif kind == "resumed":
             self.pending["iteration"] = int(event["iteration"])
+            log.info("job %s: resumed from iteration %d", self.job_id, event["iteration"])
             self.flush()
 
     def flush(self) -> None:
@@ -326,8 +327,12 @@ def run_job(
     database: Database | None = None,
     worker: str | None = None,
     stop: threading.Event | None = None,
+    device: str | None = None,
 ) -> str | None:
     """Claim and run one job; returns its final state, or None if it was not ours to run.
+
+    ``device`` (a worker's ``--device``) replaces the job config's torch device: where
+    a job trains is the runner's business, not the submitter's.
 
     ``stop`` is the runner's shutdown signal: when it is set the trainer checkpoints
     and returns, and the job goes back to ``queued`` (not ``cancelled``: nobody asked)
@@ -344,6 +349,8 @@ def run_job(
         job = s.get(Job, job_id)
         assert job is not None
         config, scene_id = dict(job.config), job.scene_id
+    if device:
+        config["device"] = device
     reporter = _JobReporter(database, job_id, lease, settings, stop)
     heartbeat = _Heartbeat(reporter, settings.heartbeat_s)
     heartbeat.start()

@@ -14,6 +14,7 @@ from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 from sqlalchemy import update
 
+import viewer_web
 from api.auth import PrincipalCache
 from api.db import Database
 from api.jobs_runner import requeue_orphans
@@ -21,7 +22,7 @@ from api.migrate import upgrade
 from api.models import Scene, SceneState
 from api.problems import PROBLEM_JSON, install_handlers
 from api.queue import JobQueue, LocalQueue, make_queue
-from api.routers import artifacts, jobs, keys, scenes
+from api.routers import artifacts, jobs, keys, scenes, viewer, workers
 from api.settings import Settings, get_settings
 from api.store import ArtifactStore, LocalStore
 from api.timing import ServerTimingMiddleware
@@ -116,7 +117,8 @@ def create_app(
     app.state.principals = PrincipalCache(settings.auth_cache_s)
     install_handlers(app)
     app.add_middleware(ServerTimingMiddleware)
-    for module in (keys, scenes, jobs, artifacts):
+    for module in (keys, scenes, jobs, artifacts, workers, viewer):
         app.include_router(module.router, prefix="/v1")
+    viewer_web.mount(app, viewer.make_service(app))
     app.openapi = lambda: _tidy_openapi(app)  # type: ignore[method-assign]
     return app

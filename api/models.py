@@ -176,3 +176,22 @@ class Artifact(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     job: Mapped[Job] = relationship(back_populates="artifacts")
+
+
+class Worker(Base):
+    """A training worker's liveness row, upserted by the worker every few seconds.
+
+    ``expires_at`` is written by the worker (now + a few of its own heartbeat periods),
+    so the API needs no knowledge of worker settings to tell the living from the dead.
+    """
+
+    __tablename__ = "workers"
+
+    id: Mapped[str] = mapped_column(String(200), primary_key=True)  # Celery node name
+    host: Mapped[str] = mapped_column(String(200))
+    pid: Mapped[int] = mapped_column(Integer)
+    device: Mapped[str] = mapped_column(String(32))
+    current_job: Mapped[str | None] = mapped_column(String(40), default=None)
+    started_at: Mapped[datetime] = mapped_column(default=utcnow)
+    heartbeat_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    expires_at: Mapped[datetime] = mapped_column(default=utcnow)

@@ -59,6 +59,9 @@ class LocalQueue:
 
 QueueFactory = Callable[["Settings"], JobQueue]
 _BACKENDS: dict[str, QueueFactory] = {"local": LocalQueue}
+# built-in backends living in other packages, imported only when chosen (the API
+# process must not import Celery, let alone torch, unless it uses them)
+_LAZY_BACKENDS = {"celery": "worker.queue:CeleryQueue"}
 
 
 def register_backend(name: str, factory: QueueFactory) -> None:
@@ -67,13 +70,23 @@ def register_backend(name: str, factory: QueueFactory) -> None:
 
 
 def make_queue(settings: Settings) -> JobQueue:
-    """The queue named by ``settings.queue_backend``: a registered name or ``module:factory``."""
+    """The queue named by ``settings.queue_backend``: a registered name or ``module:factory``.
+
+    ``auto`` (the default) is ``celery`` when a broker (``redis_url``) is configured and
+    ``local`` (the embedded queue: no external service) otherwise.
+    """
     name = settings.queue_backend
+    if name == "auto":
+        name = "celery" if settings.redis_url else "local"
     factory = _BACKENDS.get(name)
+    if factory is None:
+        name = _LAZY_BACKENDS.get(name, name)
     if factory is None and ":" in name:
         module, _, attr = name.partition(":")
         factory = getattr(importlib.import_module(module), attr)
     if factory is None:
         known = ", ".join(sorted(_BACKENDS))
-        raise ValueError(f"unknown queue backend {name!r} (known: {known}, or 'module:factory')")
+        raise ValueError(
+            f"unknown queue backend {name!r} (known: auto, {known}, celery, or 'module:factory')"
+        )
     return factory(settings)

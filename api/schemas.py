@@ -156,3 +156,19 @@ class ArtifactOut(BaseModel):
     content_type: str
     sha256: str
     url: str
+
+
+# --- workers -------------------------------------------------------------------------
+
+
+class WorkerOut(BaseModel):
+    id: str = Field(description="worker node name, e.g. glint-cuda0@gpu-host-1")
+    host: str
+    pid: int
+    device: str = Field(description="torch device the worker trains on: cpu, cuda:N")
+    busy: bool = Field(description="whether it is running a job now")
+    current_job: str | None = Field(
+        description="the job it runs, when that job is the caller's (others' ids are hidden)"
+    )
+    started_at: datetime
+    heartbeat_at: datetime = Field(description="last liveness update")

@@ -47,9 +47,10 @@ class Settings(BaseSettings):
     )
     redis_url: str | None = Field(None, description="broker URL for the Celery queue")
     queue_backend: str = Field(
-        "local",
-        description="'local': jobs run in a thread of the API process (embedded default); "
-        "other backends (Celery) register themselves in api.queue",
+        "auto",
+        description="'auto': 'celery' when redis_url is set, else 'local'; 'local': jobs "
+        "run in a thread of the API process (embedded, no external service); 'celery': "
+        "Celery workers on the Redis broker; or 'module:factory'",
     )
     auto_migrate: bool = Field(True, description="run Alembic migrations when the app starts")
 

@@ -1,0 +1,106 @@
+"""The viewer's API side: viewer tokens for job owners, and job lookups for viewer_web.
+
+``POST /v1/jobs/{id}/viewer-token`` (Bearer key, owner-scoped like every job route)
+returns a short-lived token that the viewer page uses for its WebSocket and env-map
+requests, so the API key never travels in a URL. The rest of the viewer lives in
+``viewer_web`` and reaches the database only through :func:`make_lookup`.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+from fastapi import APIRouter, FastAPI, Request
+from pydantic import BaseModel, Field
+from sqlalchemy import select
+
+from api.deps import PrincipalDep, SessionDep
+from api.models import Job
+from api.problems import responses
+from api.routers.jobs import AUTH, JobId, owned_job
+from api.store import job_run_key, scene_files_key
+from api.views import job_out
+from viewer_web import JobView, ViewerService
+
+router = APIRouter(prefix="/jobs", tags=["viewer"])
+
+# The job fields the viewer shows (config and plan stay out: they are large).
+STATUS_FIELDS = (
+    "id",
+    "state",
+    "phase",
+    "iteration",
+    "total_iterations",
+    "progress",
+    "n_gaussians",
+    "loss",
+    "metrics",
+    "elapsed_s",
+    "eta_s",
+    "error",
+    "version",
+)
+
+
+class ViewerTokenOut(BaseModel):
+    token: str = Field(description="pass as ?token= to the viewer WebSocket and env-map URLs")
+    expires_at: datetime
+    expires_in: int = Field(description="seconds until the token expires")
+    websocket: str = Field(description="path of the frame stream, token included")
+    envmap: str = Field(description="path of the env map PNG, token included")
+    page: str = Field(description="path of the viewer page for this job")
+
+
+def viewer_status(job: Job) -> dict[str, Any]:
+    data = job_out(job).model_dump(mode="json")
+    return {k: data[k] for k in STATUS_FIELDS}
+
+
+def make_lookup(app: FastAPI) -> Callable[[str, str], JobView | None]:
+    """(job id, owner) -> JobView | None, reading the app's database and store."""
+
+    def lookup(job_id: str, owner: str) -> JobView | None:
+        with app.state.database.read() as s:
+            job = s.scalar(select(Job).where(Job.id == job_id, Job.owner == owner))
+            if job is None:
+                return None
+            status, scene_id = viewer_status(job), job.scene_id
+        store = app.state.store
+        scene_dir: Path | None = store.path(scene_files_key(scene_id))
+        if scene_dir is not None and not scene_dir.is_dir():
+            scene_dir = None
+        return JobView(store.path(job_run_key(job_id)), scene_dir, status)
+
+    return lookup
+
+
+def make_service(app: FastAPI) -> ViewerService:
+    """The app's viewer service; ``GLINT_VIEWER_MAX`` bounds concurrent viewers (4)."""
+    return ViewerService(make_lookup(app), max_viewers=int(os.environ.get("GLINT_VIEWER_MAX", "4")))
+
+
+@router.post(
+    "/{job_id}/viewer-token",
+    response_model=ViewerTokenOut,
+    responses=responses(*AUTH, 422),
+    summary="Get a short-lived token for the browser viewer of a job",
+)
+def viewer_token(
+    job_id: JobId, principal: PrincipalDep, session: SessionDep, request: Request
+) -> ViewerTokenOut:
+    owned_job(session, principal, job_id)
+    service: ViewerService = request.app.state.viewer
+    token, expires = service.issue_token(job_id, principal.owner)
+    base = f"/v1/jobs/{job_id}/viewer"
+    return ViewerTokenOut(
+        token=token,
+        expires_at=datetime.fromtimestamp(expires, UTC),
+        expires_in=int(service.token_ttl_s),
+        websocket=f"{base}/ws?token={token}",
+        envmap=f"{base}/envmap.png?token={token}",
+        page=f"/viewer/{job_id}",
+    )

@@ -1,0 +1,49 @@
+"""Workers: which training workers are alive, on what device, running which job.
+
+Celery workers upsert a row in ``workers`` every few seconds with an ``expires_at``
+of their own choosing; a row past it is a dead (or partitioned) worker and is not
+listed. A worker's current job is shown only to that job's owner.
+"""
+
+from __future__ import annotations
+
+from datetime import UTC, datetime
+
+from fastapi import APIRouter
+from sqlalchemy import select
+
+from api.deps import PrincipalDep, SessionDep
+from api.models import Job, Worker
+from api.problems import responses
+from api.schemas import WorkerOut
+
+router = APIRouter(prefix="/workers", tags=["workers"])
+
+
+@router.get(
+    "",
+    response_model=list[WorkerOut],
+    responses=responses(401),
+    summary="Alive workers: device, current job, last heartbeat",
+)
+def list_workers(principal: PrincipalDep, session: SessionDep) -> list[WorkerOut]:
+    now = datetime.now(UTC)
+    rows = session.execute(
+        select(Worker, Job.owner)
+        .outerjoin(Job, Job.id == Worker.current_job)
+        .where(Worker.expires_at > now)
+        .order_by(Worker.id)
+    ).all()
+    return [
+        WorkerOut(
+            id=w.id,
+            host=w.host,
+            pid=w.pid,
+            device=w.device,
+            busy=w.current_job is not None,
+            current_job=w.current_job if owner == principal.owner else None,
+            started_at=w.started_at,
+            heartbeat_at=w.heartbeat_at,
+        )
+        for w, owner in rows
+    ]

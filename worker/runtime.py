@@ -1,0 +1,221 @@
+"""What a worker process does besides running tasks: liveness row and job reaper.
+
+One :class:`WorkerRuntime` per worker process. A small housekeeping thread
+
+* upserts this worker's row in ``workers`` every ``worker_heartbeat_s`` (device,
+  current job), which ``GET /v1/workers`` lists, and
+* every ``reaper_interval_s`` re-sends jobs the broker lost track of: ``running``
+  jobs whose heartbeat is older than ``stale_after_s`` (their runner died; they go
+  back to ``queued`` and the next runner resumes them from their checkpoint), and
+  ``queued`` jobs untouched for ``queued_grace_s`` that have no message waiting in
+  the broker (a send that failed, a Redis that lost its data).
+
+Every worker runs a reaper: they race through conditional UPDATEs, so each lost
+job is re-sent once per period, and a duplicate message would be a no-op anyway.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import threading
+import time
+from datetime import UTC, datetime, timedelta
+
+from celery import Celery
+from sqlalchemy import delete, or_, select, update
+
+from api.db import Database, database_for
+from api.models import Job, JobState, Worker
+from worker.broker import QUEUE, TASK_TRAIN, pending_job_ids
+from worker.settings import WorkerSettings
+
+log = logging.getLogger("glint.worker")
+
+EXPIRY_HEARTBEATS = 3  # a worker silent for this many heartbeat periods is gone
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def requeue_stale_running(database: Database, stale_after_s: float) -> list[str]:
+    """``running`` jobs without heartbeat for ``stale_after_s`` back to ``queued``; their ids.
+
+    Clearing the lease fences the old runner off, should it be alive after all (a
+    stall, a partition): its next write matches no row and it stops.
+    """
+    now = _now()
+    cutoff = now - timedelta(seconds=stale_after_s)
+    stale = (Job.state == JobState.RUNNING) & or_(
+        Job.heartbeat_at < cutoff, Job.heartbeat_at.is_(None)
+    )
+    taken = []
+    with database.write() as s:
+        for job_id in s.scalars(select(Job.id).where(stale)).all():
+            res = s.execute(
+                update(Job)
+                .where(Job.id == job_id, stale)
+                .values(state=JobState.QUEUED, lease=None, updated_at=now, version=Job.version + 1)
+                .execution_options(synchronize_session=False)
+            )
+            if res.rowcount == 1:
+                taken.append(job_id)
+    return taken
+
+
+def lost_queued(database: Database, settings: WorkerSettings) -> list[str]:
+    """``queued`` jobs older than the grace with no message in the broker; touched, so
+    other reapers skip them for another grace period."""
+    now = _now()
+    cutoff = now - timedelta(seconds=settings.queued_grace_s)
+    with database.read() as s:
+        rows = s.execute(
+            select(Job.id, Job.updated_at).where(
+                Job.state == JobState.QUEUED, Job.updated_at < cutoff
+            )
+        ).all()
+    if not rows:
+        return []
+    try:
+        waiting = pending_job_ids(settings, [r.id for r in rows])
+    except Exception:  # cannot look: re-send all (duplicates are harmless)
+        log.warning("reaper: cannot inspect the broker queue", exc_info=True)
+        waiting = set()
+    lost = []
+    with database.write() as s:
+        for r in rows:
+            if r.id in waiting:
+                continue
+            res = s.execute(
+                update(Job)
+                .where(Job.id == r.id, Job.state == JobState.QUEUED, Job.updated_at == r.updated_at)
+                .values(updated_at=now)
+                .execution_options(synchronize_session=False)
+            )
+            if res.rowcount == 1:
+                lost.append(r.id)
+    return lost
+
+
+class WorkerRuntime:
+    """This process's worker identity, its current job, and its housekeeping thread."""
+
+    def __init__(self, app: Celery, settings: WorkerSettings, name: str | None = None) -> None:
+        self.app = app
+        self.settings = settings
+        self.device = settings.worker_device
+        self.name = name or f"glint-{self.device.replace(':', '')}@{socket.gethostname()}"
+        self.database = database_for(settings.db_url)
+        self.stop = threading.Event()  # set on worker shutdown: jobs checkpoint and go back
+        self.current_job: str | None = None
+        self._closed = threading.Event()
+        self._started_at = _now()
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+
+    # -- tasks ------------------------------------------------------------------
+    def run(self, job_id: str) -> str | None:
+        """Run one job (or do nothing if it is not claimable); its final state."""
+        from api.jobs_runner import run_job
+
+        self.current_job = job_id
+        self.beat()
+        try:
+            state = run_job(
+                job_id,
+                self.settings,
+                database=self.database,
+                worker=f"{self.name}:{os.getpid()}",
+                stop=self.stop,
+                device=self.device,
+            )
+        finally:
+            self.current_job = None
+            self.beat()
+        if state == JobState.QUEUED:  # shutdown interrupted it: hand it to another worker
+            self.send(job_id)
+        return state
+
+    def send(self, job_id: str) -> None:
+        try:
+            self.app.send_task(TASK_TRAIN, args=[job_id], queue=QUEUE)
+        except Exception:  # the reaper re-sends it after queued_grace_s
+            log.exception("job %s: re-send failed", job_id)
+
+    # -- housekeeping -----------------------------------------------------------
+    def start(self, name: str | None = None) -> None:
+        """Register this worker and start heartbeat + reaper (on Celery's worker_ready)."""
+        if name:
+            self.name = name
+        if self.settings.auto_migrate:
+            from api.migrate import upgrade
+
+            try:
+                upgrade(self.database.engine)
+            except Exception:  # another process may be migrating; the API does it too
+                log.warning("database migration failed", exc_info=True)
+        self.beat()
+        self._thread = threading.Thread(target=self._loop, name="glint-housekeeping", daemon=True)
+        self._thread.start()
+        log.info("worker %s ready on %s", self.name, self.device)
+
+    def _loop(self) -> None:
+        next_reap = time.monotonic()
+        while not self._closed.wait(self.settings.worker_heartbeat_s):
+            self.beat()
+            if time.monotonic() >= next_reap:
+                next_reap = time.monotonic() + self.settings.reaper_interval_s
+                self.reap()
+
+    def beat(self) -> None:
+        """Upsert this worker's row (best effort: a missed beat is retried next period)."""
+        now = _now()
+        expires = now + timedelta(seconds=EXPIRY_HEARTBEATS * self.settings.worker_heartbeat_s)
+        values = {
+            "host": socket.gethostname(),
+            "pid": os.getpid(),
+            "device": self.device,
+            "current_job": self.current_job,
+            "heartbeat_at": now,
+            "expires_at": expires,
+            "started_at": self._started_at,
+        }
+        with self._lock:
+            try:
+                with self.database.write() as s:
+                    res = s.execute(update(Worker).where(Worker.id == self.name).values(**values))
+                    if res.rowcount == 0:
+                        s.add(Worker(id=self.name, **values))
+            except Exception:
+                log.warning("worker heartbeat failed", exc_info=True)
+
+    def reap(self) -> list[str]:
+        """Re-send stale and lost jobs; the ids sent."""
+        try:
+            stale = requeue_stale_running(self.database, self.settings.stale_after_s)
+            lost = lost_queued(self.database, self.settings)
+        except Exception:
+            log.warning("reaper scan failed", exc_info=True)
+            return []
+        for job_id in stale:
+            log.warning("job %s: runner silent; re-queued to resume elsewhere", job_id)
+        for job_id in lost:
+            log.warning("job %s: queued but not in the broker; re-sent", job_id)
+        for job_id in stale + lost:
+            self.send(job_id)
+        return stale + lost
+
+    def close(self) -> None:
+        """Stop housekeeping and remove this worker's row (it is no longer alive)."""
+        self.stop.set()
+        self._closed.set()
+        if self._thread is not None:
+            self._thread.join(10)
+        with self._lock:
+            try:
+                with self.database.write() as s:
+                    s.execute(delete(Worker).where(Worker.id == self.name))
+            except Exception:
+                log.warning("cannot deregister worker %s", self.name, exc_info=True)
