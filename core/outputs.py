@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from core.channels import CHANNELS  # noqa: F401  (re-exported)
 from core.envmap_io import save_envmap
 from core.groundtruth import load_ground_truth
 from core.imageio import write_image
@@ -27,7 +28,6 @@ from core.report import write_report
 if TYPE_CHECKING:
     from core.trainer import Trainer
 
-CHANNELS = ("final", "base", "specular", "normal", "depth", "w_r", "alpha")
 
 
 def colormap(x: Tensor, valid: Tensor, name: str = "turbo") -> Tensor:
@@ -116,6 +116,73 @@ def geometry_errors(trainer: Trainer, views) -> dict[str, Any] | None:
     }
 
 
+def export_sections(trainer: Trainer, geo: dict[str, Any] | None) -> list[str]:
+    """The report sections of an export; later writers of report.md (``glint eval``)
+    repeat them so that rewriting the report keeps them."""
+    sections = []
+    if geo is not None:
+        sections.append(
+            "## Geometry against ground truth\n\n"
+            f"Over {geo['views']} views: mean normal error {geo['normal_error_deg']:.2f}°, "
+            f"depth error {geo['depth_abs_error']:.4f} (abs), "
+            f"{100 * geo['depth_rel_error']:.2f}% (rel)."
+        )
+    if trainer.skipped_steps:
+        sections.append(f"Skipped {trainer.skipped_steps} steps with non-finite loss or gradients.")
+    return sections
+
+
+# Written into a run folder by tools that know the scene a run was trained on
+# (``glint bench``), so ``glint mesh``/``glint eval`` can find it again.
+SCENE_RECORD = "scene.json"
+
+
+def record_scene(run_dir: str | Path, scene_dir: str | Path) -> Path:
+    """Remember which scene folder a run belongs to (absolute path)."""
+    path = Path(run_dir) / SCENE_RECORD
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps({"scene": str(Path(scene_dir).resolve())}, indent=2))
+    return path
+
+
+def find_run_scene(run_dir: str | Path, scene_dir: str | Path | None = None) -> Path:
+    """The scene folder of a run: the one given, else ``scene.json``, else the
+    ``scene/`` folder beside the run (the layout ``glint demo`` writes)."""
+    from core.errors import GlintError
+
+    run = Path(run_dir)
+    if scene_dir is not None:
+        return Path(scene_dir)
+    rec = run / SCENE_RECORD
+    if rec.is_file():
+        return Path(json.loads(rec.read_text())["scene"])
+    demo = run.parent / "scene"
+    if (demo / "transforms_train.json").is_file():
+        return demo
+    raise GlintError(f"{run}: no {SCENE_RECORD} in the run folder; pass the scene folder")
+
+
+def load_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> Trainer:
+    """The trained model of a run folder (its latest checkpoint), with its scene loaded
+    at the run's resolution; raises if the run has no checkpoint."""
+    from core.config import config_from_dict
+    from core.errors import GlintError
+    from core.scene_io import load_scene
+    from core.trainer import CHECKPOINT_NAME, Trainer
+
+    run = Path(run_dir)
+    if not (run / CHECKPOINT_NAME).is_file():
+        raise GlintError(f"{run}: no {CHECKPOINT_NAME}: not a (started) training run")
+    cfg_path = run / "config.json"
+    if not cfg_path.is_file():
+        raise GlintError(f"{run}: no config.json")
+    cfg = config_from_dict(json.loads(cfg_path.read_text()), str(cfg_path))
+    scene = load_scene(find_run_scene(run, scene_dir), downscale=1.0 / cfg.resolution_scale)
+    trainer = Trainer(scene, cfg, run)
+    trainer.setup(resume=True)
+    return trainer
+
+
 def export_run(trainer: Trainer, max_renders: int = 4) -> dict[str, Any]:
     """Write every artifact of the run into its folder; returns a summary."""
     out = trainer.out
@@ -133,18 +200,9 @@ def export_run(trainer: Trainer, max_renders: int = 4) -> dict[str, Any]:
     files["renders"] = sorted(p.name for p in render_dir.glob("*.png"))
     geo_views = trainer.scene.test or trainer.scene.train
     geo = geometry_errors(trainer, geo_views)
-    sections = []
     if geo is not None:
         (out / "geometry.json").write_text(json.dumps(geo, indent=2))
-        sections.append(
-            "## Geometry against ground truth\n\n"
-            f"Over {geo['views']} views: mean normal error {geo['normal_error_deg']:.2f}°, "
-            f"depth error {geo['depth_abs_error']:.4f} (abs), "
-            f"{100 * geo['depth_rel_error']:.2f}% (rel)."
-        )
-    if trainer.skipped_steps:
-        sections.append(f"Skipped {trainer.skipped_steps} steps with non-finite loss or gradients.")
-    write_report(out, sections)
+    write_report(out, export_sections(trainer, geo))
     files["report"] = "report.md"
     summary = {"files": files, "geometry": geo, "iteration": trainer.iteration}
     (out / "outputs.json").write_text(json.dumps(summary, indent=2, default=str))
