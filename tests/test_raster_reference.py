@@ -157,7 +157,7 @@ def test_compiled_binning_equals_torch_binning(size, n):
     from core.raster.binning import bin_gaussians_torch
 
     cam = identity_camera(size)
-    means, quats, scales, op, _ = _random_scene(n, 11, torch.float32)
+    means, quats, scales, _, _ = _random_scene(n, 11, torch.float32)
     means[: n // 10, 2] = -1.0  # some behind the camera: culled
     p = project_gaussians(means, covariances_from(quats, scales), cam)
     a = bin_gaussians_torch(p.means2d, p.depths, p.radii, size, size)
