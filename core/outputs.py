@@ -29,7 +29,6 @@ if TYPE_CHECKING:
     from core.trainer import Trainer
 
 
-
 def colormap(x: Tensor, valid: Tensor, name: str = "turbo") -> Tensor:
     """Map a scalar image to RGB (linear) with a matplotlib colormap; invalid → black."""
     import matplotlib
