@@ -179,13 +179,206 @@ def _register_core(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="generate a small glossy scene and train on it (CPU, a few minutes)",
-        description="Renders an analytic glossy sphere (48 + 4 views), then trains on it with "
+        description="Renders an analytic glossy sphere (64 + 4 views), then trains on it with "
         "the full method at a CPU budget. Needs no GPU, no network and no data files.",
     )
     p.add_argument("--out", default="runs/demo", help="folder for the scene and the run")
     p.add_argument("--size", type=int, default=64, help="image size of the generated views")
     _add_train_args(p)
     p.set_defaults(func=_cmd_demo)
+
+
+def _add_mesh_args(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--voxel", type=float, help="TSDF voxel size (default: 2·radius/resolution)")
+    p.add_argument("--trunc", type=float, help="TSDF truncation distance (default: 4 voxels)")
+    p.add_argument(
+        "--mesh-resolution", type=int, default=None, help="voxels across the box (default 256)"
+    )
+
+
+def _set_threads(n: int | None) -> None:
+    if n:
+        import torch
+
+        torch.set_num_threads(n)
+
+
+def _cmd_mesh(args: argparse.Namespace) -> int:
+    from core.mesh import DEFAULT_RESOLUTION, mesh_run
+    from core.outputs import load_run
+
+    _set_threads(args.threads)
+    trainer = load_run(args.run, args.scene)
+    _, info = mesh_run(
+        trainer,
+        voxel=args.voxel,
+        trunc=args.trunc,
+        resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
+        carve=not args.no_carve,
+        keep_fraction=args.keep_fraction,
+    )
+    fu = info["fusion"]
+    print(
+        f"mesh of iteration {info['iteration']}: {info['vertices']} vertices, "
+        f"{info['faces']} faces, {info['components']['kept']}/"
+        f"{info['components']['components']} components kept, voxel {fu['voxel']:.4g}, "
+        f"truncation {fu['trunc']:.4g}"
+    )
+    print(f"wrote mesh.ply, mesh.obj, mesh.glb and mesh.json in {args.run}")
+    return 0
+
+
+def _cmd_eval(args: argparse.Namespace) -> int:
+    from core.bench import evaluate_run
+
+    _set_threads(args.threads)
+    ev = evaluate_run(
+        args.run,
+        args.gt,
+        n_points=args.points,
+        voxel=args.voxel,
+        trunc=args.trunc,
+        mesh_resolution=args.mesh_resolution,
+        remesh=args.remesh,
+    )
+    print(json.dumps(ev["summary"], indent=2))
+    print(f"wrote eval.json and the Evaluation section of report.md in {args.run}")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from core.bench import parse_configs, run_bench
+
+    _set_threads(args.threads)
+    path = run_bench(
+        args.scenes,
+        args.budget,
+        args.out,
+        configs=parse_configs(args.configs),
+        resolution_scale=args.resolution_scale,
+        base=_nested(_parse_overrides(args.set)),
+        progress=not args.quiet,
+        eval_kwargs={
+            "n_points": args.points,
+            "voxel": args.voxel,
+            "trunc": args.trunc,
+            "mesh_resolution": args.mesh_resolution,
+        },
+        command=_bench_command(args),
+        retime_fps=args.retime_fps,
+    )
+    print(path.read_text())
+    print(f"wrote {path} and {path.parent / 'error_vs_time.png'}")
+    return 0
+
+
+def _bench_command(args: argparse.Namespace) -> str:
+    """The ``glint bench`` command line that reproduces this run (for bench.md)."""
+    parts = ["glint bench", *args.scenes, f"--budget {args.budget}"]
+    parts += [f"--resolution-scale {args.resolution_scale:g}", f"--configs {args.configs}"]
+    parts += [f"--set {s}" for s in args.set or []]
+    for flag, value in (
+        ("--points", args.points),
+        ("--voxel", args.voxel),
+        ("--trunc", args.trunc),
+        ("--mesh-resolution", args.mesh_resolution),
+        ("--threads", args.threads),
+    ):
+        if value is not None:
+            parts.append(f"{flag} {value}")
+    if args.retime_fps:
+        parts.append("--retime-fps")
+    return " ".join(parts)
+
+
+def _nested(flat: dict) -> dict:
+    """{"loss.scale": 50} -> {"loss": {"scale": 50}}."""
+    out: dict = {}
+    for key, value in flat.items():
+        node = out
+        *parents, last = key.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+        node[last] = value
+    return out
+
+
+def _register_eval(sub: argparse._SubParsersAction) -> None:
+    from core.bench import CONFIGS, DEFAULT_CHAMFER_POINTS
+
+    threads = {"type": int, "help": "torch CPU threads (default: torch's choice)"}
+    p = sub.add_parser(
+        "mesh",
+        help="extract a mesh (TSDF of the planar depths) from a training run",
+        description="Renders the planar depth of every training view from the run's latest "
+        "checkpoint, fuses them into a TSDF, runs marching cubes, keeps the largest "
+        "components and writes mesh.ply, mesh.obj, mesh.glb and mesh.json into RUN.",
+    )
+    p.add_argument("run", help="run folder (with checkpoint.pt)")
+    p.add_argument("--scene", help="the run's scene folder (default: from scene.json)")
+    _add_mesh_args(p)
+    p.add_argument("--no-carve", action="store_true", help="do not carve empty pixels")
+    p.add_argument(
+        "--keep-fraction",
+        type=float,
+        default=0.1,
+        help="keep components with at least this fraction of the largest one's faces",
+    )
+    p.add_argument("--threads", **threads)
+    p.set_defaults(func=_cmd_mesh)
+    p = sub.add_parser(
+        "eval",
+        help="score a run: PSNR/SSIM/LPIPS, Chamfer distance, F-score, normal/depth error, FPS",
+        description="Evaluates the run's latest checkpoint on every test view and, when the "
+        "scene ships gt_points.ply, its TSDF mesh (extracted if needed). Writes eval.json and "
+        "an Evaluation section in report.md.",
+    )
+    p.add_argument("run", help="run folder (with checkpoint.pt)")
+    p.add_argument("--gt", help="scene folder with the ground truth (default: from scene.json)")
+    p.add_argument(
+        "--points",
+        type=int,
+        default=DEFAULT_CHAMFER_POINTS,
+        help="points sampled on the mesh for the Chamfer distance",
+    )
+    _add_mesh_args(p)
+    p.add_argument("--remesh", action="store_true", help="extract the mesh even if up to date")
+    p.add_argument("--threads", **threads)
+    p.set_defaults(func=_cmd_eval)
+    p = sub.add_parser(
+        "bench",
+        help="ablation benchmark (paper Table 3) over scenes at an iteration budget",
+        description="Trains and evaluates the full model and each ablation on each scene, "
+        "then writes bench.md (one table per scene, Table 3 layout) and error_vs_time.png "
+        "into --out. Resumable: finished runs (with eval.json) are skipped, interrupted ones "
+        "continue from their checkpoint.",
+    )
+    p.add_argument("scenes", nargs="+", help="scene folders")
+    p.add_argument("--budget", type=int, required=True, help="training iterations per run")
+    p.add_argument("--out", default="runs/bench", help="benchmark folder")
+    p.add_argument("--resolution-scale", type=float, default=1.0, help="image scale, (0, 1]")
+    p.add_argument(
+        "--configs",
+        default=",".join(CONFIGS),
+        help=f"comma-separated subset of {','.join(CONFIGS)}",
+    )
+    p.add_argument("--set", action="append", metavar="KEY=VALUE", help="base config override")
+    p.add_argument(
+        "--points",
+        type=int,
+        default=DEFAULT_CHAMFER_POINTS,
+        help="points sampled on each mesh for the Chamfer distance",
+    )
+    _add_mesh_args(p)
+    p.add_argument("--threads", **threads)
+    p.add_argument(
+        "--retime-fps",
+        action="store_true",
+        help="re-time every finished run's renderer back to back before writing bench.md "
+        "(comparable FPS when runs were trained in parallel or under varying load)",
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_bench)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -197,6 +390,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"glint {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _register_core(sub)
+    _register_eval(sub)
     for ep in entry_points(group="glint.commands"):
         try:
             register = ep.load()
