@@ -28,6 +28,9 @@ def train_scene(
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if not isinstance(scene, Scene):
+        from core.outputs import record_scene
+
+        record_scene(out, scene)  # so `glint mesh/eval RUN` find the scene again
         scene = load_scene(scene, downscale=1.0 / cfg.resolution_scale)
     (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
     trainer = Trainer(
