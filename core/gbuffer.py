@@ -106,6 +106,14 @@ def planar_depth(
     return depth, valid
 
 
+def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
+    """(depth, valid) that losses, exports and meshes use: planar Eq. 8, or the Eq. 5
+    blended centre depth of the ablation (valid wherever it was computed)."""
+    if planar:
+        return gb.depth, gb.depth_valid
+    return gb.center_depth, gb.alpha > MIN_ALPHA
+
+
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,

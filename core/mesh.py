@@ -42,6 +42,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from core.cameras import Camera
+from core.gbuffer import geometry_depth
 from core.imageio import linear_to_srgb
 
 if TYPE_CHECKING:
@@ -420,10 +421,7 @@ def trainer_depth_frames(trainer: Trainer, views: Sequence[Any] | None = None) -
         gb, shade, _ = render_view(
             trainer.gaussians, trainer.envmap, v.camera, phase, bg, trainer.cfg.backend
         )
-        if phase.planar_depth:
-            depth, valid = gb.depth, gb.depth_valid
-        else:
-            depth, valid = gb.center_depth, gb.center_depth > 0
+        depth, valid = geometry_depth(gb, phase.planar_depth)
         alpha = gb.alpha
         valid = valid & (alpha > SURFACE_ALPHA)
         if v.mask is not None:

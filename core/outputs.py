@@ -19,8 +19,9 @@ from torch import Tensor
 
 from core.channels import CHANNELS  # noqa: F401  (re-exported)
 from core.envmap_io import save_envmap
+from core.gbuffer import geometry_depth, render_gbuffer
 from core.groundtruth import load_ground_truth
-from core.imageio import write_image
+from core.imageio import srgb_to_linear, write_image
 from core.metrics import depth_error, normal_angle_error_deg
 from core.ply import save_ply
 from core.report import write_report
@@ -40,7 +41,7 @@ def colormap(x: Tensor, valid: Tensor, name: str = "turbo") -> Tensor:
     out = torch.from_numpy(rgb)
     out[~valid.cpu()] = 0.0
     # Colormaps are defined in display space; store linear so write_image's sRGB encode round-trips.
-    return torch.where(out <= 0.04045, out / 12.92, ((out + 0.055) / 1.055) ** 2.4)
+    return srgb_to_linear(out)
 
 
 @torch.no_grad()
@@ -57,11 +58,8 @@ def channel_images(trainer: Trainer, camera) -> dict[str, Tensor]:
     n_world = gb.normal @ R
     n_world = n_world / n_world.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     normal_rgb = (n_world * 0.5 + 0.5) * gb.alpha[..., None]
-    normal_lin = torch.where(
-        normal_rgb <= 0.04045, normal_rgb / 12.92, ((normal_rgb + 0.055) / 1.055) ** 2.4
-    )
-    depth = gb.depth if phase.planar_depth else gb.center_depth
-    valid = gb.depth_valid if phase.planar_depth else gb.alpha > 0.05
+    normal_lin = srgb_to_linear(normal_rgb)
+    depth, valid = geometry_depth(gb, phase.planar_depth)
     return {
         "final": shade.final.cpu(),
         "base": (gb.base + (1 - gb.alpha[..., None]) * bg).cpu(),
@@ -80,18 +78,15 @@ def geometry_errors(trainer: Trainer, views) -> dict[str, Any] | None:
     if root is None:
         return None
     angles, abs_err, rel_err, n = [], [], [], 0
+    planar = trainer.current_phase(max(trainer.iteration - 1, 0)).planar_depth
     for v in views:
         gt = load_ground_truth(root, v)
         if gt is None:
             continue
-        from core.gbuffer import render_gbuffer
-
         gb, _ = render_gbuffer(
             trainer.gaussians, v.camera, sh_degree=0, backend=trainer.cfg.backend
         )
-        phase = trainer.current_phase(max(trainer.iteration - 1, 0))
-        depth = gb.depth if phase.planar_depth else gb.center_depth
-        valid = gb.depth_valid if phase.planar_depth else gb.alpha > 0.05
+        depth, valid = geometry_depth(gb, planar)
         mask = gt.mask.to(depth.device) & valid & (gb.alpha > 0.5)
         R = v.camera.R.to(gb.normal)
         n_world = gb.normal @ R

@@ -22,8 +22,8 @@ import torch
 
 from core.cameras import Camera
 from core.config import ConfigError, TrainConfig
-from core.imageio import linear_to_srgb
 from core.losses import bilinear_lookup
+from core.metrics import to_display
 from core.scene import Scene
 
 if TYPE_CHECKING:
@@ -242,16 +242,13 @@ def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any
         def warp(img: torch.Tensor, uv_j=uv_j, vis=vis) -> torch.Tensor:
             return torch.stack([bilinear_lookup(img[..., c], uv_j[vis])[0] for c in range(3)], -1)
 
-        def disp(x: torch.Tensor) -> torch.Tensor:
-            return linear_to_srgb(x.clamp(0, 1))
-
         base_i = gi.base / gi.alpha.clamp_min(1e-6)[..., None]
         base_j = gj.base / gj.alpha.clamp_min(1e-6)[..., None]
         sel = idx[vis]
         gt_i = vi.image.reshape(-1, 3)[sel]
         mod_i = base_i.reshape(-1, 3)[sel]
-        gt_diffs.append((disp(gt_i) - disp(warp(vj.image))).abs().mean(-1))
-        model_diffs.append((disp(mod_i) - disp(warp(base_j))).abs().mean(-1))
+        gt_diffs.append((to_display(gt_i) - to_display(warp(vj.image))).abs().mean(-1))
+        model_diffs.append((to_display(mod_i) - to_display(warp(base_j))).abs().mean(-1))
         pixels += int(vis.sum())
     if not gt_diffs:
         return {"pairs": 0, "pixels": 0, "excess": None}

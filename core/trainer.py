@@ -24,7 +24,7 @@ from core.config import TrainConfig
 from core.densify import DensifyStrategy
 from core.envmap import EnvMap
 from core.gaussians import Gaussians
-from core.gbuffer import GBuffer, render_gbuffer
+from core.gbuffer import GBuffer, geometry_depth, render_gbuffer
 from core.init_points import visual_hull_points
 from core.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
 from core.metrics import psnr, ssim_srgb
@@ -239,11 +239,6 @@ class Trainer:
             max_sh_degree=int(self.plan.sh_degree.value),
         )
 
-    def _geometry_depth(self, gb: GBuffer, phase: Phase) -> tuple[Tensor, Tensor]:
-        if phase.planar_depth:
-            return gb.depth, gb.depth_valid
-        return gb.center_depth, gb.alpha > 0.05
-
     def _grads_ok(self) -> bool:
         """Every gradient finite *and* below √(dtype max): a finite gradient whose square
         overflows would put Inf into Adam's second moment, freeze that parameter for
@@ -275,7 +270,7 @@ class Trainer:
             # Eq. 7 in units of the scene radius: in world units the same capture in
             # millimetres or kilometres would weigh flatness 1e6× differently.
             terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales / self.radius)
-        depth, valid = self._geometry_depth(gb, phase)
+        depth, valid = geometry_depth(gb, phase.planar_depth)
         if view.mask is not None:
             valid = valid & (view.mask > 0.5)
         if phase.single_view and cfg.loss.single_view > 0:
@@ -286,7 +281,7 @@ class Trainer:
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
             nview = self._targets[nb]
             gb_n, _ = render_gbuffer(self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend)
-            d_n, v_n = self._geometry_depth(gb_n, phase)
+            d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
             if nview.mask is not None:
                 v_n = v_n & (nview.mask > 0.5)
             mv, _ = multi_view_loss(

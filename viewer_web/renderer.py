@@ -28,7 +28,7 @@ from core.config import TrainConfig, config_from_dict
 from core.envmap import EnvMap
 from core.envmap_io import cube_to_equirect
 from core.gaussians import Gaussians
-from core.gbuffer import render_gbuffer_tensors
+from core.gbuffer import geometry_depth, render_gbuffer_tensors
 from core.imageio import linear_to_srgb
 from core.outputs import CHANNELS, colormap
 from core.planner import ScenePlan
@@ -287,8 +287,7 @@ def render_channel(model: LoadedModel, camera: Camera, channel: str) -> np.ndarr
         rgb = (n_world * 0.5 + 0.5) * gb.alpha[..., None]  # already display-encoded
         return (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu().numpy()
     elif channel == "depth":
-        depth = gb.depth if phase.planar_depth else gb.center_depth
-        valid = gb.depth_valid if phase.planar_depth else gb.alpha > 0.05
+        depth, valid = geometry_depth(gb, phase.planar_depth)
         img = colormap(depth.cpu(), valid.cpu())
     elif channel == "w_r":
         img = gb.w_r[..., None].expand(-1, -1, 3)
