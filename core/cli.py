@@ -126,7 +126,6 @@ def _cmd_train(args: argparse.Namespace) -> int:
 DEMO_DEFAULTS = {
     "iterations": 1500,
     "init_points": 3000,
-    "envmap_resolution": 32,
     "densify.max_gaussians": 12000,
 }
 

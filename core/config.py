@@ -33,6 +33,12 @@ class Phases(_Strict):
     geometry_start: int = Field(3_000, ge=0, description="single-view loss and env map on")
     multiview_start: int = Field(7_000, ge=0, description="multi-view loss on")
     sh_full_start: int = Field(10_000, ge=0, description="SH degree 0 until here, then max")
+    min_rgb_iterations: int = Field(
+        500, ge=0, description="short runs: RGB-only phase at least this long (≤ 1/3 of the run)"
+    )
+    min_geometry_iterations: int = Field(
+        250, ge=0, description="short runs: single-view phase at least this long (≤ 1/6 of the run)"
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> Phases:
@@ -51,6 +57,12 @@ class LossWeights(_Strict):
     multiview_max_angle_deg: float = Field(30.0, gt=0, le=180)
     multiview_max_error_px: float = Field(1.0, gt=0)
     multiview_pixels: int = Field(4096, ge=16, description="pixels sampled per multi-view step")
+    single_view_edge_aware: bool = Field(
+        True, description="weight L_single by PGSR's (1 - image gradient)^2"
+    )
+    multiview_error_weighting: bool = Field(
+        True, description="weight L_multi pixels by PGSR's exp(-reprojection error)"
+    )
 
 
 class LearningRates(_Strict):
@@ -107,7 +119,11 @@ class TrainConfig(_Strict):
     resolution_scale: float = Field(1.0, gt=0, le=1, description="downscale images on load")
     background: Literal["white", "black", "random"] | list[float] = "white"
     sh_degree: int = Field(3, ge=0, le=3)
-    envmap_resolution: int = Field(128, ge=4, le=2048)
+    envmap_resolution: int | Literal["auto"] = Field(
+        "auto",
+        description="cube face size in texels; auto: the paper's 128 at its focal length "
+        "(≈1111 px), scaled with this capture's focal length (see the scene plan)",
+    )
     init_points: int = Field(20_000, ge=1, description="random init when the scene has no cloud")
     init_opacity: float = Field(0.1, gt=0, lt=1)
     init_refl: float = Field(0.05, ge=0, lt=1)
@@ -119,6 +135,13 @@ class TrainConfig(_Strict):
     eval: Evaluation = Evaluation()
     checkpoint_every: int = Field(0, ge=0, description="iterations; 0 = ~5 per run + phase ends")
     plan_overrides: dict[str, Any] = Field(default_factory=dict)
+
+    @field_validator("envmap_resolution")
+    @classmethod
+    def _envmap_res(cls, v: Any) -> Any:
+        if v != "auto" and not 4 <= int(v) <= 2048:
+            raise ValueError("envmap_resolution must be 'auto' or an integer in [4, 2048]")
+        return v
 
     @field_validator("background")
     @classmethod

@@ -85,16 +85,46 @@ def normals_from_depth(depth: Tensor, valid: Tensor, camera: Camera) -> tuple[Te
     return n, ok
 
 
+def edge_weight(image: Tensor) -> Tensor:
+    """PGSR's (1 − ∇I)² per pixel of an (H, W, C) image, in [0, 1], (H, W).
+
+    ∇I is the larger of the channel-mean central differences in x and y, rescaled to
+    [0, 1] over the image; border pixels get 0. Why: at image edges (silhouettes,
+    creases, texture boundaries) depth and colour change abruptly and the local-plane
+    assumption of Eq. 10 fails, so the depth-normal loss should not pull there.
+    """
+    H, W = image.shape[:2]
+    w = torch.zeros(H, W, dtype=image.dtype, device=image.device)
+    if H < 3 or W < 3:
+        return w
+    img = image.detach()
+    gx = (img[1:-1, 2:] - img[1:-1, :-2]).abs().mean(-1)
+    gy = (img[2:, 1:-1] - img[:-2, 1:-1]).abs().mean(-1)
+    g = torch.maximum(gx, gy)
+    span = g.max() - g.min()
+    g = (g - g.min()) / span if float(span) > 0 else torch.zeros_like(g)
+    w[1:-1, 1:-1] = (1.0 - g) ** 2
+    return w
+
+
 def single_view_loss(
-    rendered_normal: Tensor, depth: Tensor, valid: Tensor, camera: Camera
+    rendered_normal: Tensor,
+    depth: Tensor,
+    valid: Tensor,
+    camera: Camera,
+    weight: Tensor | None = None,
 ) -> Tensor:
-    """Eq. 11: mean over valid pixels of 1 − n·N (rendered vs depth-derived normal)."""
+    """Eq. 11: mean over valid pixels of 1 − n·N (rendered vs depth-derived normal),
+    each pixel weighted by ``weight`` (H, W) when given (e.g. :func:`edge_weight`)."""
     N, ok = normals_from_depth(depth, valid, camera)
     if not bool(ok.any()):
         return rendered_normal.sum() * 0.0
     n = rendered_normal[ok]
     n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    return (1.0 - (n * N[ok]).sum(-1)).mean()
+    per_pixel = 1.0 - (n * N[ok]).sum(-1)
+    if weight is None:
+        return per_pixel.mean()
+    return (weight[ok] * per_pixel).mean()
 
 
 def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
@@ -150,6 +180,7 @@ def multi_view_loss(
     max_error_px: float = 1.0,
     n_pixels: int | None = None,
     generator: torch.Generator | None = None,
+    error_weighting: bool = False,
 ) -> tuple[Tensor, dict[str, float]]:
     """Eq. 12–14: forward–backward reprojection error between two depth maps.
 
@@ -157,7 +188,9 @@ def multi_view_loss(
     neighbour (Eq. 13), lifted again with the neighbour's bilinearly sampled depth,
     and projected back to p̃_r. The loss is the mean of ‖p_r − p̃_r‖ over pixels
     whose error is at most ``max_error_px`` (larger errors are occlusions or
-    mismatches, excluded as in the paper). Returns (loss, stats).
+    mismatches, excluded as in the paper). With ``error_weighting`` each kept pixel
+    is weighted by exp(−error) (detached), as PGSR does, so pixels that are probably
+    mismatched pull less. Returns (loss, stats).
     """
     dtype, device = depth_ref.dtype, depth_ref.device
     idx = valid_ref.reshape(-1).nonzero()[:, 0]
@@ -186,4 +219,7 @@ def multi_view_loss(
     stats = {"pixels": float(idx.numel()), "kept": float(keep.sum())}
     if not bool(keep.any()):
         return zero, stats
-    return err[keep].mean(), stats
+    e = err[keep]
+    if error_weighting:
+        return (torch.exp(-e.detach()) * e).mean(), stats
+    return e.mean(), stats

@@ -30,11 +30,25 @@ if TYPE_CHECKING:
     from core.trainer import Trainer
 
 OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh")
+DECISION_KEYS = ("envmap", "envmap_resolution", "sh_degree", "multi_view", "background", "mesh")
 # Excess colour variation across views (mean |Δ| in sRGB units) above which a scene
-# is specular; half of it marks mild view dependence (SH only). Measured at the end
-# of the RGB phase on generated spheres (32 train views, 32-48 px): diffuse
-# 0.001-0.003, glossy 0.020-0.022, mirror 0.023-0.026 (a low-contrast sky).
+# is specular; from MILD_EXCESS up it is mildly view-dependent (SH only, degree kept).
+# Measured at the end of a 500-iteration RGB phase on generated spheres (32 train
+# views, 32 px, 2 samples per pixel): diffuse 0.002-0.005 (image noise the model
+# smooths away), glossy 0.023, mirror 0.032; on the dev scenes at 64 px: teapot_gold
+# 0.043, spot_plastic (textured, glossy coat) 0.010.
 SPECULAR_EXCESS = 0.01
+MILD_EXCESS = 0.0075
+# Auto env-map resolution: the paper's 6×128×128 map went with 800-px images taken
+# with NeRF-synthetic's lens (f ≈ 1111 px). A reflection sweeps the map at a rate
+# proportional to the focal length, so texels per pixel stay the same when the face
+# size scales with f. Rounded up to a power of two, within these bounds. At 64 px
+# (f ≈ 89) this gives 16; on teapot_gold that scored 24.2 dB test PSNR at 1500
+# iterations against 22.3 dB with a 128 map, whose texels each saw too few pixels
+# and learned speckle.
+PAPER_ENVMAP_RESOLUTION = 128
+PAPER_FOCAL_PX = 1111.1
+ENVMAP_AUTO_MIN, ENVMAP_AUTO_MAX = 8, 128
 
 
 @dataclass
@@ -55,6 +69,9 @@ class ScenePlan:
     mesh: Decision
     neighbours: list[int | None] = field(default_factory=list)
     init: dict[str, Any] = field(default_factory=dict)
+    envmap_resolution: Decision = field(
+        default_factory=lambda: Decision(PAPER_ENVMAP_RESOLUTION, "the paper's default")
+    )
 
     def neighbour_of(self, view_index: int) -> int | None:
         if not self.multi_view.value or view_index >= len(self.neighbours):
@@ -78,7 +95,7 @@ class ScenePlan:
                 True, f"specular: colour varies across views by {excess:.3f} beyond "
                 f"misregistration (≥ {SPECULAR_EXCESS})", evidence)  # fmt: skip
             self.sh_degree = Decision(cfg.sh_degree, "view-dependent scene", evidence)
-        elif excess >= SPECULAR_EXCESS / 2:
+        elif excess >= MILD_EXCESS:
             self.envmap = Decision(
                 False, f"mildly view-dependent ({excess:.3f}): SH colour suffices", evidence
             )
@@ -86,17 +103,14 @@ class ScenePlan:
         else:
             self.envmap = Decision(
                 False, f"diffuse: view-dependent variation {excess:.3f} < "
-                f"{SPECULAR_EXCESS / 2}", evidence)  # fmt: skip
+                f"{MILD_EXCESS}", evidence)  # fmt: skip
             self.sh_degree = Decision(0, "no view dependence: SH degree 0", evidence)
         _apply_overrides(self, cfg, only=("envmap", "sh_degree"))
 
     # -- persistence --------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return {
-            "decisions": {
-                k: asdict(getattr(self, k))
-                for k in ("envmap", "sh_degree", "multi_view", "background", "mesh")
-            },
+            "decisions": {k: asdict(getattr(self, k)) for k in DECISION_KEYS},
             "neighbours": list(self.neighbours),
             "init": dict(self.init),
         }
@@ -165,6 +179,30 @@ def _apply_overrides(
         )
 
 
+def auto_envmap_resolution(focal_px: float) -> int:
+    """Cube face size with the paper's texels per pixel at this focal length (see top)."""
+    if not (math.isfinite(focal_px) and focal_px > 0):
+        return PAPER_ENVMAP_RESOLUTION
+    r = PAPER_ENVMAP_RESOLUTION * focal_px / PAPER_FOCAL_PX
+    r = 2 ** math.ceil(math.log2(r) - 1e-6) if r > 1 else 1
+    return int(min(max(r, ENVMAP_AUTO_MIN), ENVMAP_AUTO_MAX))
+
+
+def plan_envmap_resolution(focals_px: list[float], cfg: TrainConfig) -> Decision:
+    """The env map's face size: from the config, or scaled with the median focal length."""
+    if cfg.envmap_resolution != "auto":
+        return Decision(int(cfg.envmap_resolution), "from the config (envmap_resolution)")
+    f = float(torch.tensor(focals_px).median()) if focals_px else math.nan
+    r = auto_envmap_resolution(f)
+    return Decision(
+        r,
+        f"the paper's {PAPER_ENVMAP_RESOLUTION} texels at f = {PAPER_FOCAL_PX:.0f} px, "
+        f"scaled to this capture's f = {f:.1f} px (power of two in "
+        f"[{ENVMAP_AUTO_MIN}, {ENVMAP_AUTO_MAX}])",
+        {"median_focal_px": f},
+    )
+
+
 def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     """Decisions that need only the capture; env map and SH stay pending."""
     cams = [v.camera for v in scene.train]
@@ -194,7 +232,10 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         env = Decision(False, "switched off by the ablation config (SH colour only)")
         sh = Decision(cfg.sh_degree, "from the config")
     mesh = Decision(False, "not asked for (plan_overrides.mesh or `glint mesh`)")
-    plan = ScenePlan(env, sh, mv, bg, mesh, [j for j, _ in nbs])
+    plan = ScenePlan(
+        env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
+            [float(c.intrinsics.fx) for c in cams], cfg)
+    )  # fmt: skip
     _apply_overrides(plan, cfg)
     return plan
 

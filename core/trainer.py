@@ -26,7 +26,7 @@ from core.envmap import EnvMap
 from core.gaussians import Gaussians
 from core.gbuffer import GBuffer, geometry_depth, render_gbuffer
 from core.init_points import visual_hull_points
-from core.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
+from core.losses import edge_weight, multi_view_loss, rgb_loss, scale_loss, single_view_loss
 from core.metrics import psnr, ssim_srgb
 from core.optim import make_optimizers, means_lr, set_lr
 from core.planner import ScenePlan, plan_scene, probe_view_dependence
@@ -149,7 +149,7 @@ class Trainer:
             self.plan.init = {"method": method, "points": g.num}
         self.gaussians = g.to(self.device)
         if self.plan.envmap_possible(self.cfg):
-            self.envmap = EnvMap(self.cfg.envmap_resolution).to(self.device)
+            self.envmap = EnvMap(int(self.plan.envmap_resolution.value)).to(self.device)
         self.optimizers = self._make_optimizers()
         self.plan.save(self.out / "plan.json")
 
@@ -274,8 +274,9 @@ class Trainer:
         if view.mask is not None:
             valid = valid & (view.mask > 0.5)
         if phase.single_view and cfg.loss.single_view > 0:
+            weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
             terms["single_view"] = cfg.loss.single_view * single_view_loss(
-                gb.normal, depth, valid, view.camera
+                gb.normal, depth, valid, view.camera, weight
             )
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
@@ -288,6 +289,7 @@ class Trainer:
                 depth, valid, view.camera, d_n, v_n, nview.camera,
                 max_error_px=cfg.loss.multiview_max_error_px,
                 n_pixels=cfg.loss.multiview_pixels, generator=self.gen,
+                error_weighting=cfg.loss.multiview_error_weighting,
             )  # fmt: skip
             terms["multi_view"] = cfg.loss.multi_view * mv
         loss = sum(terms.values())

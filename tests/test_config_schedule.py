@@ -16,18 +16,44 @@ def test_defaults_are_the_papers():
         0.1,
         0.8,
     )
-    assert c.iterations == 30_000 and c.envmap_resolution == 128
+    assert c.iterations == 30_000 and c.envmap_resolution == "auto"
     m = Marks.of(c)
     assert (m.geometry_start, m.multiview_start, m.sh_full_start) == (3000, 7000, 10000)
 
 
+NO_FLOORS = {"min_rgb_iterations": 0, "min_geometry_iterations": 0}
+
+
 def test_marks_scale_with_run_length():
-    m = Marks.of(config_from_dict({"iterations": 3000}))
+    m = Marks.of(config_from_dict({"iterations": 3000, "phases": NO_FLOORS}))
     assert (m.geometry_start, m.multiview_start, m.sh_full_start) == (300, 700, 1000)
 
 
+def test_short_runs_get_floored_phases():
+    # 1500 iterations: scaled marks 150/350 are raised to 500 and 500 + 250.
+    m = Marks.of(config_from_dict({"iterations": 1500}))
+    assert (m.geometry_start, m.multiview_start, m.sh_full_start) == (500, 750, 500)
+    # The floors never take more than a third (a sixth) of the run.
+    m = Marks.of(config_from_dict({"iterations": 300}))
+    assert (m.geometry_start, m.multiview_start) == (100, 150)
+    # Long runs: the floors do not bind.
+    m = Marks.of(config_from_dict({"iterations": 60_000}))
+    assert (m.geometry_start, m.multiview_start) == (6000, 14000)
+    # Marks the user put at 0 (or merged) stay where they are.
+    c = {"iterations": 1500, "phases": {"geometry_start": 0, "multiview_start": 0}}
+    m = Marks.of(config_from_dict(c))
+    assert (m.geometry_start, m.multiview_start) == (0, 0)
+
+
+def test_envmap_resolution_validated():
+    assert config_from_dict({"envmap_resolution": 16}).envmap_resolution == 16
+    for bad in (2, 4096, "big"):
+        with pytest.raises(ConfigError, match="envmap_resolution"):
+            config_from_dict({"envmap_resolution": bad})
+
+
 def test_phases_in_order():
-    c = config_from_dict({"iterations": 3000})
+    c = config_from_dict({"iterations": 3000, "phases": NO_FLOORS})
     p0, p1, p2, p3 = (phase_at(c, i) for i in (0, 300, 700, 1000))
     assert (p0.name, p0.single_view, p0.envmap, p0.multi_view, p0.sh_degree) == (
         "rgb",

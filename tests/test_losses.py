@@ -9,6 +9,7 @@ import torch
 from core.cameras import Camera, Intrinsics
 from core.losses import (
     bilinear_lookup,
+    edge_weight,
     multi_view_loss,
     normals_from_depth,
     rgb_loss,
@@ -126,3 +127,42 @@ def test_multi_view_loss_gradients_finite_and_flow_to_both_depths():
     loss.backward()
     assert torch.isfinite(d_ref.grad).all() and torch.isfinite(d_nb.grad).all()
     assert d_ref.grad.abs().sum() > 0 and d_nb.grad.abs().sum() > 0
+
+
+def test_edge_weight_is_zero_on_edges_and_one_on_flat_regions():
+    img = torch.zeros(16, 16, 3)
+    img[:, 8:] = 1.0  # a vertical step between columns 7 and 8
+    w = edge_weight(img)
+    assert w.shape == (16, 16)
+    assert torch.all(w[1:-1, 7:9] == 0.0)  # both columns next to the step
+    assert torch.all(w[1:-1, 1:6] == 1.0) and torch.all(w[1:-1, 10:15] == 1.0)
+    assert torch.all(w[0] == 0) and torch.all(w[:, -1] == 0)  # borders have no gradient
+    flat = edge_weight(torch.full((8, 8, 3), 0.3))
+    assert torch.all(flat[1:-1, 1:-1] == 1.0)
+
+
+def test_single_view_loss_weight_masks_pixels():
+    cam = identity_camera(16, 16)
+    depth = torch.full((16, 16), 2.0)
+    ones = torch.ones(16, 16, dtype=torch.bool)
+    perpendicular = torch.zeros(16, 16, 3)
+    perpendicular[..., 0] = 1.0  # the plane faces -z; this normal is at 90°
+    assert abs(single_view_loss(perpendicular, depth, ones, cam).item() - 1.0) < 1e-5
+    zero_w = torch.zeros(16, 16)
+    assert single_view_loss(perpendicular, depth, ones, cam, zero_w).item() == 0.0
+    half = torch.full((16, 16), 0.5)
+    assert abs(single_view_loss(perpendicular, depth, ones, cam, half).item() - 0.5) < 1e-5
+
+
+def test_multi_view_error_weighting_is_pgsrs_exp_weight():
+    ref, nb = _two_views()
+    n = torch.tensor([0.2, 0.1, -1.0], dtype=torch.float64)
+    n = n / n.norm()
+    d_ref = _plane_depth_world(ref, n, torch.zeros(3, dtype=torch.float64))
+    d_nb = _plane_depth_world(nb, n, torch.zeros(3, dtype=torch.float64)) * 1.02
+    ones = torch.ones(32, 32, dtype=torch.bool)
+    plain, st = multi_view_loss(d_ref, ones, ref, d_nb, ones, nb)
+    weighted, st2 = multi_view_loss(d_ref, ones, ref, d_nb, ones, nb, error_weighting=True)
+    assert st == st2 and 0 < weighted.item() < plain.item()
+    # exp(-e)·e ≥ e·exp(-1) for e ≤ 1 px, so the weighted mean stays above that bound.
+    assert weighted.item() >= plain.item() * math.exp(-1.0) - 1e-12

@@ -8,7 +8,7 @@ import pytest
 
 from core.cameras import Camera, Intrinsics
 from core.config import ConfigError, config_from_dict
-from core.planner import find_neighbours, plan_scene
+from core.planner import auto_envmap_resolution, find_neighbours, plan_scene
 from core.synthetic import make_scene
 from core.trainer import Trainer
 
@@ -81,3 +81,27 @@ def test_no_neighbours_turns_multi_view_off_and_says_why():
     assert plan.multi_view.value is False and "no view has a neighbour" in plan.multi_view.reason
     assert all(plan.neighbour_of(i) is None for i in range(4))
     assert plan.background.value == "masked"
+
+
+def test_auto_envmap_resolution_follows_focal_length():
+    # The paper's 128 at f ≈ 1111 px (800-px NeRF-synthetic), then scaled with f.
+    assert auto_envmap_resolution(1111.1) == 128
+    assert auto_envmap_resolution(177.8) == 32  # the dev scenes at 128 px
+    assert auto_envmap_resolution(88.9) == 16  # ... and at 64 px
+    assert auto_envmap_resolution(10.0) == 8 and auto_envmap_resolution(5000.0) == 128
+    assert auto_envmap_resolution(float("nan")) == 128
+
+
+def test_plan_records_envmap_resolution_and_config_wins(tmp_path):
+    scene = make_scene("sphere", "mirror", n_train=8, n_test=1, size=32, samples=1)
+    f = scene.train[0].camera.intrinsics.fx
+    auto = plan_scene(scene, config_from_dict({}))
+    d = auto.to_dict()["decisions"]["envmap_resolution"]
+    assert d["value"] == auto_envmap_resolution(f)
+    assert d["evidence"]["median_focal_px"] == pytest.approx(f)
+    fixed = plan_scene(scene, config_from_dict({"envmap_resolution": 24}))
+    assert fixed.envmap_resolution.value == 24 and "config" in fixed.envmap_resolution.reason
+    cfg = config_from_dict({"iterations": 10, "init_points": 200, "envmap_resolution": 12})
+    t = Trainer(scene, cfg, tmp_path)
+    t.setup(resume=False)
+    assert t.envmap is not None and t.envmap.resolution == 12

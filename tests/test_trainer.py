@@ -57,7 +57,14 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
     for ch in ("final", "base", "specular", "normal", "depth", "w_r", "alpha"):
         assert any(n.endswith(f"_{ch}.png") for n in renders), ch
     plan = json.loads((tmp_path / "plan.json").read_text())
-    assert set(plan["decisions"]) == {"envmap", "sh_degree", "multi_view", "background", "mesh"}
+    assert set(plan["decisions"]) == {
+        "envmap",
+        "envmap_resolution",
+        "sh_degree",
+        "multi_view",
+        "background",
+        "mesh",
+    }
     assert not plan["decisions"]["envmap"]["pending"]
     report = (tmp_path / "report.md").read_text()
     assert "error_vs_time.png" in report and "| 40 |" in report
