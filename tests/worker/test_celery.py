@@ -191,7 +191,9 @@ def test_killed_worker_job_resumes_on_another_from_its_checkpoint(
     assert done["iteration"] == 120 and done["attempts"] == 2
     assert "re-queued to resume elsewhere" in survivor.log()  # the reaper noticed
     (resumed,) = _resumed_from(survivor.log(), job_id)
-    assert 10 <= resumed <= killed_at < 120  # lost at most one checkpoint interval
+    # Lost at most one checkpoint interval. ``killed_at`` is the API's last progress
+    # report, which may lag the worker: the run can have checkpointed past it.
+    assert 10 <= resumed < 120 and resumed >= killed_at - 10
     its = _metrics_iterations(server, job_id)
     assert its == sorted(set(its)) and its[-1] == 120  # nothing duplicated, nothing missing
     names = [x["name"] for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()]
