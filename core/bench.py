@@ -28,7 +28,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from core.config import TrainConfig, config_from_dict
+from core.config import TrainConfig, config_from_dict, saved_config
 from core.report import plot_error_vs_time, read_metrics, write_report
 
 if TYPE_CHECKING:
@@ -476,7 +476,7 @@ def refresh_fps(cells: Sequence[Cell], *, frames: int | None = None) -> int:
     for cell in cells:
         if not cell.done:
             continue
-        cfg = config_from_dict(json.loads((cell.run_dir / "config.json").read_text()))
+        cfg = saved_config(json.loads((cell.run_dir / "config.json").read_text()))
         key = cell.scene_dir.resolve()
         if key not in scenes:
             scenes.clear()

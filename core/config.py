@@ -39,6 +39,12 @@ class Phases(_Strict):
     min_geometry_iterations: int = Field(
         250, ge=0, description="short runs: single-view phase at least this long (≤ 1/6 of the run)"
     )
+    geometry_pause_after_reset: int = Field(
+        100,
+        ge=0,
+        description="iterations after each opacity reset without L_single and L_multi "
+        "(every Gaussian is near-transparent, so the depth they constrain is undefined)",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> Phases:
@@ -92,6 +98,11 @@ class Densification(_Strict):
     opacity_reset_interval: int = Field(3_000, ge=0, description="0 disables")
     max_screen_size: float = Field(0.15, gt=0, description="prune when 2D radius > this × image")
     max_gaussians: int = Field(300_000, ge=1)
+    absgrad: bool = Field(
+        False,
+        description="AbsGS: densify on the per-pixel absolute screen gradient (cuda backend "
+        "only; use a larger grad_threshold, e.g. 8e-4)",
+    )
 
 
 class Ablation(_Strict):
@@ -119,6 +130,11 @@ class TrainConfig(_Strict):
     resolution_scale: float = Field(1.0, gt=0, le=1, description="downscale images on load")
     background: Literal["white", "black", "random"] | list[float] = "white"
     sh_degree: int = Field(3, ge=0, le=3)
+    antialiased: bool = Field(
+        True,
+        description="scale opacity by the 2D low-pass compensation (Mip-Splatting; gsplat's "
+        "'antialiased' mode) so edge-on planar Gaussians fade instead of blurring silhouettes",
+    )
     envmap_resolution: int | Literal["auto"] = Field(
         "auto",
         description="cube face size in texels; auto: the paper's 128 at its focal length "
@@ -168,6 +184,19 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> TrainConfi
         return TrainConfig.model_validate(data)
     except ValidationError as exc:
         raise ConfigError(_format_errors(exc, source)) from None
+
+
+# Fields added after runs were first saved, with the value those runs trained with.
+LEGACY_DEFAULTS: dict[str, Any] = {"antialiased": False}
+
+
+def saved_config(data: dict[str, Any], source: str = "saved config") -> TrainConfig:
+    """The config of an existing run (config.json or a checkpoint's copy).
+
+    A field the run predates gets the value it actually trained with, not today's
+    default: a classic-splatted model rendered antialiased loses its silhouettes.
+    """
+    return config_from_dict({**LEGACY_DEFAULTS, **data}, source)
 
 
 def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> TrainConfig:

@@ -58,6 +58,23 @@ WORLD_SIZE_FRACTION = 0.1  # prune when max scale > this × scene radius
 STATE_VERSION = 1
 
 
+def opacity_reset_every(cfg: TrainConfig) -> int:
+    """Iterations between opacity resets in this run (0: none)."""
+    d = cfg.densify
+    if not d.enabled or d.opacity_reset_interval <= 0:
+        return 0
+    return max(MIN_RESET_INTERVAL, cfg.scaled(d.opacity_reset_interval))
+
+
+def last_opacity_reset(cfg: TrainConfig, iteration: int) -> int | None:
+    """The latest iteration before ``iteration`` that ended with an opacity reset."""
+    every, stop = opacity_reset_every(cfg), cfg.scaled(cfg.densify.stop)
+    if every == 0 or iteration <= every:
+        return None
+    last = min(iteration - 1, stop - 1) // every * every
+    return last if last > 0 else None
+
+
 def _no_stats(n: int) -> dict[str, int]:
     return {"cloned": 0, "split": 0, "pruned": 0, "reset": 0, "n": n}
 
@@ -83,12 +100,9 @@ class DensifyStrategy:
         self.interval = max(
             min(MIN_INTERVAL, d.interval), min(d.interval, (self.stop - self.start) // 10)
         )
-        self.reset_every = (
-            max(MIN_RESET_INTERVAL, cfg.scaled(d.opacity_reset_interval))
-            if d.opacity_reset_interval > 0
-            else 0
-        )
+        self.reset_every = opacity_reset_every(cfg)
         self.grad_threshold = float(d.grad_threshold)
+        self.absgrad = bool(d.absgrad)
         self.split_scale = float(d.percent_dense) * scene_radius
         self.world_max_scale = WORLD_SIZE_FRACTION * scene_radius
         self.prune_opacity = float(d.prune_opacity)
@@ -189,13 +203,14 @@ class DensifyStrategy:
         visible = radii > 0
         if not bool(visible.any()):
             return
-        grad = result.means2d.grad
+        grad = result.screen_grad(n, absolute=self.absgrad)
         if grad is None:
             raise RuntimeError(
                 "means2d has no gradient: call step_pre_backward(result) before backward"
+                + (" and render with absgrad=True" if self.absgrad else "")
             )
         # Pixel-space gradient → NDC units (x_ndc = 2 x_pix / W − 1), as 3DGS/gsplat.
-        g = grad.detach().reshape(n, 2).to(device=device, dtype=torch.float32)
+        g = grad.to(device=device, dtype=torch.float32)
         g = g * torch.tensor([width / 2.0, height / 2.0], device=device)
         norms = torch.nan_to_num(g.norm(dim=-1), nan=0.0, posinf=0.0, neginf=0.0)
         self.grad2d[visible] += norms[visible]

@@ -129,6 +129,8 @@ def render_gbuffer_tensors(
     min_alpha: float = MIN_ALPHA,
     min_cos: float = MIN_COS,
     near: float | None = None,
+    absgrad: bool = False,
+    antialiased: bool = False,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
 
@@ -155,6 +157,8 @@ def render_gbuffer_tensors(
         covariances=covariances,
         backend=backend,
         near=near,
+        absgrad=absgrad,
+        antialiased=antialiased,
     )
     f, alpha = res.features, res.alpha
     normal = f[..., _C_NORMAL]

@@ -78,14 +78,16 @@ def geometry_errors(trainer: Trainer, views) -> dict[str, Any] | None:
     if root is None:
         return None
     angles, abs_err, rel_err, n = [], [], [], 0
-    planar = trainer.current_phase(max(trainer.iteration - 1, 0)).planar_depth
+    phase = trainer.current_phase(max(trainer.iteration - 1, 0))
+    planar = phase.planar_depth
     for v in views:
         gt = load_ground_truth(root, v)
         if gt is None:
             continue
         gb, _ = render_gbuffer(
-            trainer.gaussians, v.camera, sh_degree=0, backend=trainer.cfg.backend
-        )
+            trainer.gaussians, v.camera, sh_degree=0, backend=trainer.cfg.backend,
+            antialiased=phase.antialiased,
+        )  # fmt: skip
         depth, valid = geometry_depth(gb, planar)
         mask = gt.mask.to(depth.device) & valid & (gb.alpha > 0.5)
         R = v.camera.R.to(gb.normal)
@@ -159,7 +161,7 @@ def find_run_scene(run_dir: str | Path, scene_dir: str | Path | None = None) -> 
 def load_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> Trainer:
     """The trained model of a run folder (its latest checkpoint), with its scene loaded
     at the run's resolution; raises if the run has no checkpoint."""
-    from core.config import config_from_dict
+    from core.config import saved_config
     from core.errors import GlintError
     from core.scene_io import load_scene
     from core.trainer import CHECKPOINT_NAME, Trainer
@@ -170,7 +172,7 @@ def load_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> Traine
     cfg_path = run / "config.json"
     if not cfg_path.is_file():
         raise GlintError(f"{run}: no config.json")
-    cfg = config_from_dict(json.loads(cfg_path.read_text()), str(cfg_path))
+    cfg = saved_config(json.loads(cfg_path.read_text()), str(cfg_path))
     scene = load_scene(find_run_scene(run, scene_dir), downscale=1.0 / cfg.resolution_scale)
     trainer = Trainer(scene, cfg, run)
     trainer.setup(resume=True)

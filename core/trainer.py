@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from core.checkpoint import load_checkpoint, save_checkpoint
-from core.config import TrainConfig
+from core.config import ConfigError, TrainConfig
 from core.densify import DensifyStrategy
 from core.envmap import EnvMap
 from core.gaussians import Gaussians
@@ -30,6 +30,7 @@ from core.losses import edge_weight, multi_view_loss, rgb_loss, scale_loss, sing
 from core.metrics import psnr, ssim_srgb
 from core.optim import make_optimizers, means_lr, set_lr
 from core.planner import ScenePlan, plan_scene, probe_view_dependence
+from core.raster import resolve_backend
 from core.report import MetricsLog
 from core.scene import Scene, View
 from core.schedule import Marks, Phase, phase_at
@@ -67,6 +68,15 @@ def eval_background(cfg: TrainConfig, device: torch.device) -> Tensor:
     return torch.ones(3, device=device)
 
 
+def check_absgrad(cfg: TrainConfig, device: torch.device) -> None:
+    """Refuse ``densify.absgrad`` up front unless the run will use the CUDA backend."""
+    if cfg.densify.absgrad and resolve_backend(cfg.backend, device) != "cuda":
+        raise ConfigError(
+            "field 'densify.absgrad': AbsGS gradients come from gsplat; it needs "
+            f"backend cuda on a CUDA device (this run: backend '{cfg.backend}' on {device})"
+        )
+
+
 def render_view(
     gaussians: Gaussians,
     envmap: EnvMap | None,
@@ -74,9 +84,14 @@ def render_view(
     phase: Phase,
     background: Tensor,
     backend: str,
+    *,
+    absgrad: bool = False,
 ) -> tuple[GBuffer, ShadeResult, Any]:
     """G-buffer + deferred shading of one view for the given phase."""
-    gb, res = render_gbuffer(gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend)
+    gb, res = render_gbuffer(
+        gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
+        antialiased=phase.antialiased,
+    )  # fmt: skip
     shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
     return gb, shade, res
 
@@ -101,6 +116,7 @@ class Trainer:
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
         self.device = torch.device(cfg.device)
+        check_absgrad(cfg, self.device)
         self.on_event = on_event or (lambda e: None)
         self.should_stop = should_stop or (lambda: False)
         self.progress = progress
@@ -261,8 +277,9 @@ class Trainer:
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
         gb, shade, res = render_view(
-            self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend
-        )
+            self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
+            absgrad=cfg.densify.absgrad,
+        )  # fmt: skip
         self.strategy.step_pre_backward(res)
         target = view.composited(bg)
         terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
@@ -281,7 +298,10 @@ class Trainer:
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
             nview = self._targets[nb]
-            gb_n, _ = render_gbuffer(self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend)
+            gb_n, _ = render_gbuffer(
+                self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
+                antialiased=phase.antialiased,
+            )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
             if nview.mask is not None:
                 v_n = v_n & (nview.mask > 0.5)

@@ -114,3 +114,39 @@ def test_load_yaml_json_and_overrides(tmp_path):
     lst.write_text("- 1\n- 2\n")
     with pytest.raises(ConfigError, match="mapping"):
         load_config(lst)
+
+
+# -- geometry pause after opacity resets ------------------------------------------------
+@pytest.mark.parametrize(
+    "over",
+    [
+        {"iterations": 3000},
+        {"iterations": 30000},
+        {"iterations": 8000, "densify": {"opacity_reset_interval": 0}},
+        {"iterations": 8000, "densify": {"enabled": False}},
+    ],
+)
+def test_last_opacity_reset_matches_the_strategy(over):
+    from core.densify import DensifyStrategy, last_opacity_reset
+
+    cfg = config_from_dict(over)
+    s = DensifyStrategy(cfg, 1.0)
+    last = None
+    for it in range(cfg.iterations):
+        assert last_opacity_reset(cfg, it) == last, it
+        if s.is_reset_step(it):
+            last = it
+
+
+def test_geometry_losses_pause_after_each_reset():
+    from core.schedule import geometry_paused
+
+    cfg = config_from_dict({"iterations": 30000})
+    resets = [3000, 6000, 9000, 12000]
+    paused = [it for it in range(30000) if geometry_paused(cfg, it)]
+    assert paused == [it for r in resets for it in range(r + 1, r + 101)]
+    p = phase_at(cfg, 9050)
+    assert p.name == "multiview" and not p.single_view and not p.multi_view and p.envmap
+    assert phase_at(cfg, 9101).multi_view and phase_at(cfg, 9101).single_view
+    off = config_from_dict({"iterations": 30000, "phases": {"geometry_pause_after_reset": 0}})
+    assert not any(geometry_paused(off, it) for it in range(30000))

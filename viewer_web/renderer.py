@@ -24,7 +24,7 @@ from PIL import Image
 
 from core.cameras import Camera, Intrinsics
 from core.checkpoint import load_checkpoint
-from core.config import TrainConfig, config_from_dict
+from core.config import TrainConfig, saved_config
 from core.envmap import EnvMap
 from core.envmap_io import cube_to_equirect
 from core.gaussians import Gaussians
@@ -128,9 +128,7 @@ def load_model(path: Path, device: torch.device) -> LoadedModel:
     ck = load_checkpoint(path, device)
     extra = ck.extra
     cfg_data = extra.get("config")
-    cfg = (
-        config_from_dict(dict(cfg_data), str(path)) if isinstance(cfg_data, dict) else TrainConfig()
-    )
+    cfg = saved_config(dict(cfg_data) if isinstance(cfg_data, dict) else {}, str(path))
     envmap = None
     env_state = extra.get("envmap")
     if isinstance(env_state, dict) and "raw" in env_state:
@@ -273,6 +271,7 @@ def render_channel(model: LoadedModel, camera: Camera, channel: str) -> np.ndarr
         camera,
         covariances=st["covariances"],
         backend=model.cfg.backend,
+        antialiased=phase.antialiased,
     )
     if channel in ("final", "specular"):
         shade = deferred_shade(

@@ -27,6 +27,7 @@ from core.raster.reference import rasterize_reference
 
 __all__ = [
     "BACKENDS",
+    "PIPELINES",
     "Projected",
     "RasterResult",
     "TileBins",
@@ -49,6 +50,8 @@ class RasterResult:
     coverage); ``alpha`` (H, W) is the accumulated opacity. ``means2d`` (N, 2) are the
     projected centres: call ``retain_grad()`` before backward to read the view-space
     positional gradient (densification). ``radii`` (N,) is 0 for culled Gaussians.
+    Packed backends (gsplat) return ``means2d`` with one row per *visible* Gaussian
+    and ``gaussian_ids`` naming them; :meth:`screen_grad` gives (N, 2) either way.
     """
 
     features: Tensor
@@ -57,6 +60,23 @@ class RasterResult:
     radii: Tensor
     depths: Tensor
     backend: str
+    gaussian_ids: Tensor | None = None
+
+    def screen_grad(self, n: int, *, absolute: bool = False) -> Tensor | None:
+        """(n, 2) gradient of the loss w.r.t. the screen-space means after backward.
+
+        ``absolute``: the per-pixel absolute gradient sum (AbsGS), which only the
+        CUDA backend computes (rasterize with ``absgrad=True``). None when backward
+        has not filled it (``retain_grad()`` not called, or no absgrad computed).
+        """
+        g = getattr(self.means2d, "absgrad", None) if absolute else self.means2d.grad
+        if g is None:
+            return None
+        g = g.detach()
+        if self.gaussian_ids is None:
+            return g.reshape(n, 2)
+        out = torch.zeros(n, 2, dtype=g.dtype, device=g.device)
+        return out.index_add(0, self.gaussian_ids.long(), g.reshape(-1, 2))
 
 
 # name -> (is_available(device) -> str | None (reason when unavailable), composite fn)
@@ -97,6 +117,15 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     return backend
 
 
+# Backends that run the whole pipeline (projection, binning, compositing) themselves.
+_Pipeline = Callable[..., RasterResult]
+PIPELINES: dict[str, _Pipeline] = {}
+
+
+def _composite_unused(*_: object, **__: object) -> tuple[Tensor, Tensor]:
+    raise RuntimeError("this backend runs the whole pipeline: call rasterize(), not its composite")
+
+
 def rasterize(
     means: Tensor,
     quats: Tensor | None,
@@ -111,28 +140,48 @@ def rasterize(
     far: float = 1e10,
     eps2d: float = 0.3,
     tile_size: int = 16,
+    absgrad: bool = False,
+    antialiased: bool = False,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
     Shapes: means (N, 3) world; quats (N, 4) wxyz; scales (N, 3) positive (not log);
     opacities (N,) in [0, 1]; features (N, C). ``covariances`` (N, 3, 3), when given,
-    replaces quats/scales (full-covariance ablation and tests).
+    replaces quats/scales (full-covariance ablation and tests). ``absgrad`` (CUDA
+    backend only) also accumulates AbsGS's absolute screen gradient. ``antialiased``
+    scales each opacity by the low-pass compensation (``Projected.compensation``).
     """
-    if covariances is None:
-        if quats is None or scales is None:
-            raise ValueError("rasterize needs quats and scales, or covariances")
-        covariances = covariances_from(quats, scales)
+    if covariances is None and (quats is None or scales is None):
+        raise ValueError("rasterize needs quats and scales, or covariances")
     if features.ndim != 2 or features.shape[0] != means.shape[0]:
         raise ValueError(
             f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}"
         )
     name = resolve_backend(backend, means.device)
+    if name in PIPELINES:
+        return PIPELINES[name](
+            means, quats, scales, opacities, features, camera, covariances=covariances,
+            near=near, far=far, eps2d=eps2d, tile_size=tile_size, absgrad=absgrad,
+            antialiased=antialiased,
+        )  # fmt: skip
+    if absgrad:
+        raise BackendUnavailableError(
+            f"absgrad (AbsGS densification) needs the cuda backend; '{name}' does not compute it"
+        )
+    if covariances is None:
+        covariances = covariances_from(quats, scales)
     W, H = camera.width, camera.height
     proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
     bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
     fn = BACKENDS[name][1]
+    if antialiased and proj.compensation is not None:
+        opacities = opacities * proj.compensation
     feats, alpha = fn(proj, opacities, features, bins, W, H)
     return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
 
 
 from core.raster import cpu_backend as _cpu_backend  # noqa: E402,F401  registers "cpu"
+from core.raster import cuda_backend as _cuda_backend  # noqa: E402
+
+register_backend("cuda", _cuda_backend.available, _composite_unused)
+PIPELINES["cuda"] = _cuda_backend.rasterize_gsplat

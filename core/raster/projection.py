@@ -27,7 +27,8 @@ class Projected:
 
     ``means2d`` (N, 2) in pixels (pixel centres at +0.5), ``conics`` (N, 3) the
     inverse 2D covariance as (a, b, c) for [[a, b], [b, c]], ``depths`` (N,) camera
-    z, ``radii`` (N,) int pixel radius (0 = culled), ``cov2d`` (N, 2, 2).
+    z, ``radii`` (N,) int pixel radius (0 = culled), ``cov2d`` (N, 2, 2),
+    ``compensation`` (N,) the antialiasing opacity factor (see ``project_gaussians``).
     """
 
     means2d: Tensor
@@ -35,6 +36,7 @@ class Projected:
     depths: Tensor
     radii: Tensor
     cov2d: Tensor
+    compensation: Tensor | None = None
 
     @property
     def visible(self) -> Tensor:
@@ -92,10 +94,11 @@ def project_gaussians(
     in_depth = (z > near) & (z < far)
     z_safe = torch.where(in_depth, z, torch.ones_like(z))
 
-    lim_x_pos = (W - cx) / fx + 0.3 * W / fx
-    lim_x_neg = cx / fx + 0.3 * W / fx
-    lim_y_pos = (H - cy) / fy + 0.3 * H / fy
-    lim_y_neg = cy / fy + 0.3 * H / fy
+    # 1.3 × tan(fov/2) past each image edge, as 3DGS and gsplat (tan(fov/2) = W / 2fx).
+    lim_x_pos = (W - cx) / fx + 0.3 * (0.5 * W / fx)
+    lim_x_neg = cx / fx + 0.3 * (0.5 * W / fx)
+    lim_y_pos = (H - cy) / fy + 0.3 * (0.5 * H / fy)
+    lim_y_neg = cy / fy + 0.3 * (0.5 * H / fy)
     tx = z_safe * torch.clamp(x / z_safe, -lim_x_neg, lim_x_pos)
     ty = z_safe * torch.clamp(y / z_safe, -lim_y_neg, lim_y_pos)
 
@@ -136,4 +139,12 @@ def project_gaussians(
     on_screen = (ud + radii > 0) & (ud - radii < W) & (vd + radii > 0) & (vd - radii < H)
     ok = ok & on_screen & torch.isfinite(ud) & torch.isfinite(vd)
     radii = torch.where(ok, radii, torch.zeros_like(radii))
-    return Projected(means2d=means2d, conics=conics, depths=z, radii=radii, cov2d=cov2d)
+    # Mip-Splatting / gsplat "antialiased": the low-pass widens every footprint; scaling
+    # opacity by √(det Σ₂ᴰ / det(Σ₂ᴰ + εI)) keeps each Gaussian's total coverage, so an
+    # edge-on planar Gaussian (det → 0) fades out instead of smearing a 1-px halo.
+    det0 = (a0 * c0 - b * b).clamp_min(0.0)
+    compensation = torch.sqrt((det0 / det_safe).clamp_min(1e-12))
+    return Projected(
+        means2d=means2d, conics=conics, depths=z, radii=radii, cov2d=cov2d,
+        compensation=compensation,
+    )  # fmt: skip

@@ -1,0 +1,212 @@
+"""A PGSR-DR training step and a deferred render against a plain 3DGS step.
+
+    python -m bench.train_step --device cuda --size 800 --n 300000     # issue 5's GPU case
+    python -m bench.train_step --device cpu --size 64 --n 4000 --threads 2
+
+All cases run in one process on the same Gaussians, side by side:
+
+* ``plain render`` / ``plain step``: the 3DGS baseline, a 3-channel render of SH
+  colours (degree 3), then L1 + D-SSIM, backward and Adam. On CUDA it is a bare
+  ``gsplat.rasterization`` call with gsplat's own SH; elsewhere the same rasteriser
+  backend as ours with 3 channels.
+* ``G-buffer``: our 9-channel pass (base, normal, plane distance, w_r, centre z).
+* ``deferred render``: G-buffer + env-map shading, no gradients (the viewer's frame).
+* ``full step``: the multi-view phase, the heaviest: G-buffer, deferred shading, RGB,
+  scale, single-view and multi-view losses (a second G-buffer for the neighbour),
+  backward and Adam.
+
+Targets (issue 5, on an H100): full step ≤ 1.3 × plain step; deferred ≥ 200 FPS.
+Peak memory is CUDA's allocator peak per case, or the process's peak RSS on CPU.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Callable
+
+import torch
+
+from bench.common import bench_camera, machine_line, median_time, peak_rss_mib
+from core.cameras import Camera
+from core.config import TrainConfig
+from core.envmap import EnvMap
+from core.gaussians import Gaussians
+from core.gbuffer import geometry_depth, render_gbuffer
+from core.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
+from core.optim import make_optimizers
+from core.raster import rasterize, resolve_backend
+from core.shading import deferred_shade
+
+
+def neighbour_camera(cam: Camera, degrees: float = 10.0) -> Camera:
+    """The same camera orbited ``degrees`` about the world z axis (a multi-view pair)."""
+    a = math.radians(degrees)
+    rot = torch.eye(4, dtype=torch.float64)
+    rot[:2, :2] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return Camera(cam.intrinsics, cam.world_to_cam @ rot, "neighbour")
+
+
+def make_gaussians(n: int, device: torch.device, seed: int = 0) -> Gaussians:
+    """n flat, SH-3 Gaussians in the ball the bench camera looks at."""
+    g = torch.Generator().manual_seed(seed)
+    pts = torch.randn(n, 3, generator=g) * 0.45
+    cols = torch.rand(n, 3, generator=g)
+    gs = Gaussians.from_points(pts, cols, sh_degree=3, radius=1.0)
+    with torch.no_grad():
+        gs.params["sh_rest"].normal_(0.0, 0.05, generator=g)
+        gs.params["opacity_logits"].uniform_(-1.0, 2.0, generator=g)
+        gs.params["log_scales"][:, 2] -= 3.0
+    return gs.to(device)
+
+
+def plain_render(gs: Gaussians, cam: Camera, backend: str) -> torch.Tensor:
+    """The 3DGS baseline image (H, W, 3) over a white background."""
+    if backend == "cuda":
+        from core.raster.cuda_backend import camera_matrices, gsplat_rasterization
+
+        viewmats, Ks = camera_matrices(cam, torch.float32, gs.device)
+        sh = torch.cat([gs.params["sh_dc"], gs.params["sh_rest"]], dim=1)
+        img, alpha, _ = gsplat_rasterization()(
+            gs.params["means"], gs.unit_quats, gs.scales, gs.opacities, sh, viewmats, Ks,
+            cam.width, cam.height, sh_degree=3, packed=True,
+        )  # fmt: skip
+        return img[0] + (1.0 - alpha[0])
+    r = rasterize(
+        gs.params["means"], gs.unit_quats, gs.scales, gs.opacities, gs.colors(cam, 3), cam,
+        backend=backend,
+    )  # fmt: skip
+    return r.features + (1.0 - r.alpha)[..., None]
+
+
+def run(args: argparse.Namespace) -> dict:
+    device = torch.device(args.device)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    backend = resolve_backend(args.backend, device)
+    cfg = TrainConfig(device=args.device, backend=backend)
+    cam, cam_nb = bench_camera(args.size), neighbour_camera(bench_camera(args.size))
+    gs = make_gaussians(args.n, device)
+    env = EnvMap(args.envmap).to(device)
+    opts = make_optimizers(gs, cfg, 1.0)
+    opts["envmap"] = torch.optim.Adam(env.parameters(), lr=cfg.lr.envmap)
+    target = torch.rand(args.size, args.size, 3, generator=torch.Generator().manual_seed(1))
+    target = target.to(device)
+    white = torch.ones(3, device=device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else None
+
+    def adam() -> None:
+        for o in opts.values():
+            o.step()
+            o.zero_grad(set_to_none=True)
+
+    def plain_fwd() -> None:
+        with torch.no_grad():
+            plain_render(gs, cam, backend)
+
+    def plain_step() -> None:
+        rgb_loss(plain_render(gs, cam, backend), target, 0.8).backward()
+        adam()
+
+    def gbuffer_fwd() -> None:
+        with torch.no_grad():
+            render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+
+    def gbuffer_fwd_bwd() -> None:
+        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+        (gb.base.sum() + gb.normal.sum() + gb.plane_dist.sum() + gb.alpha.sum()).backward()
+        adam()
+
+    def deferred() -> None:
+        with torch.no_grad():
+            gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+            deferred_shade(gb, env, white)
+
+    def full_step() -> None:
+        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+        shade = deferred_shade(gb, env, white)
+        loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
+        depth, valid = geometry_depth(gb, True)
+        loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
+        gb_n, _ = render_gbuffer(gs, cam_nb, sh_degree=0, backend=backend)
+        d_n, v_n = geometry_depth(gb_n, True)
+        mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, n_pixels=4096)
+        (loss + 0.1 * mv).backward()
+        adam()
+
+    cases: list[tuple[str, Callable[[], None]]] = [
+        ("plain render", plain_fwd),
+        ("plain step", plain_step),
+        ("G-buffer forward", gbuffer_fwd),
+        ("G-buffer forward+backward", gbuffer_fwd_bwd),
+        ("deferred render", deferred),
+        ("full step (multi-view phase)", full_step),
+    ]
+    rows = []
+    for name, fn in cases:
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        ms = median_time(fn, warmup=args.warmup, repeat=args.repeat, sync=sync) * 1e3
+        if device.type == "cuda":
+            mem = torch.cuda.max_memory_allocated(device) / 2**20
+        else:
+            mem = peak_rss_mib()
+        rows.append({"case": name, "ms": ms, "fps": 1e3 / ms, "peak_mib": mem})
+    by = {r["case"]: r for r in rows}
+    return {
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "backend": backend,
+        "size": args.size,
+        "n": args.n,
+        "rows": rows,
+        "full_over_plain_step": by["full step (multi-view phase)"]["ms"] / by["plain step"]["ms"],
+        "gbuffer_over_plain_render": by["G-buffer forward"]["ms"] / by["plain render"]["ms"],
+        "deferred_fps": by["deferred render"]["fps"],
+    }
+
+
+def format_table(res: dict) -> str:
+    mem = "peak CUDA MiB" if res["device"].startswith("cuda") else "peak RSS MiB (process)"
+    lines = [
+        f"Machine: {machine_line()}; device {res['device_name']}, backend `{res['backend']}`, "
+        f"{res['size']}², {res['n']:,} Gaussians",
+        "",
+        f"| case | median ms | per second | {mem} |",
+        "|---|---:|---:|---:|",
+    ]
+    for r in res["rows"]:
+        lines.append(f"| {r['case']} | {r['ms']:.2f} | {r['fps']:.1f} | {r['peak_mib']:.0f} |")
+    lines += [
+        "",
+        f"full step / plain step: {res['full_over_plain_step']:.2f}× (target ≤ 1.3×); "
+        f"G-buffer / plain render: {res['gbuffer_over_plain_render']:.2f}×; "
+        f"deferred render: {res['deferred_fps']:.0f} FPS (target ≥ 200 on an H100)",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--backend", default="auto")
+    ap.add_argument("--size", type=int, default=800)
+    ap.add_argument("--n", type=int, default=300_000)
+    ap.add_argument("--envmap", type=int, default=128, help="cube face size")
+    ap.add_argument("--repeat", type=int, default=10)
+    ap.add_argument("--warmup", type=int, default=3)
+    ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    ap.add_argument("--json", help="also write the results here")
+    args = ap.parse_args(argv)
+    res = run(args)
+    print(format_table(res))
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump(res, fh, indent=2)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,32 @@
+"""bench.train_step runs end to end on CPU and reports the ratios issue 5 asks for."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+from bench.common import bench_camera
+from bench.train_step import format_table, neighbour_camera, run
+
+
+def test_train_step_bench_runs_on_cpu():
+    args = argparse.Namespace(
+        device="cpu", backend="cpu", size=32, n=600, envmap=8, repeat=1, warmup=0, threads=1
+    )
+    res = run(args)
+    names = [r["case"] for r in res["rows"]]
+    assert names[0] == "plain render" and names[-1] == "full step (multi-view phase)"
+    assert all(r["ms"] > 0 and math.isfinite(r["ms"]) for r in res["rows"])
+    assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
+    assert "full step / plain step" in format_table(res)
+
+
+def test_neighbour_camera_keeps_the_target_in_view():
+    cam = bench_camera(32)
+    nb = neighbour_camera(cam, 10.0)
+    # the origin (what the bench camera looks at) projects near the centre in both
+    for c in (cam, nb):
+        p = c.t  # the world origin in camera coordinates
+        u = c.intrinsics.fx * p[0] / p[2] + c.intrinsics.cx
+        assert abs(float(u) - 16.0) < 4.0
+    assert not bool((nb.world_to_cam == cam.world_to_cam).all())
