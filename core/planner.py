@@ -31,14 +31,25 @@ if TYPE_CHECKING:
 
 OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh")
 DECISION_KEYS = ("envmap", "envmap_resolution", "sh_degree", "multi_view", "background", "mesh")
-# Excess colour variation across views (mean |Δ| in sRGB units) above which a scene
-# is specular; from MILD_EXCESS up it is mildly view-dependent (SH only, degree kept).
-# Measured at the end of a 500-iteration RGB phase on generated spheres (32 train
-# views, 32 px, 2 samples per pixel): diffuse 0.002-0.005 (image noise the model
-# smooths away), glossy 0.023, mirror 0.032; on the dev scenes at 64 px: teapot_gold
-# 0.043, spot_plastic (textured, glossy coat) 0.010.
+# Two readings of view dependence, both "captured minus view-independent model" over
+# surface points seen by a view and its neighbour (sRGB units):
+# - excess: mean |Δcolour|. Separates diffuse from everything else, but a few
+#   highlights on a textured surface barely move a mean.
+# - highlight fraction: share of points whose colour changes by more than
+#   HIGHLIGHT_DELTA, i.e. highlights and reflections moving across the surface.
+# Measured at the end of a 500-iteration RGB phase, 32 view pairs, alpha > 0.5
+# (2026-11-22, antialiased splatting). Generated spheres (32 views, 32 px, 2 samples
+# per pixel, seeds 0-3): diffuse excess 0.0003-0.0015, highlights 0.0000-0.0002;
+# glossy 0.018-0.021, 0.067-0.076; mirror 0.014-0.015, 0.10. Dev scenes at 128 px:
+# spot_plastic (textured cow, glossy coat) 0.0077, 0.031; teapot_gold 0.081, 0.28;
+# sphere_mirror 0.094, 0.31. With 8 pairs and alpha > 0.9 the mirror sphere's reading
+# fell to 0.003-0.006 over too few pixels; hence more pairs and the lower alpha.
 SPECULAR_EXCESS = 0.01
-MILD_EXCESS = 0.0075
+SPECULAR_HIGHLIGHTS = 0.01
+HIGHLIGHT_DELTA = 0.1
+MILD_EXCESS = 0.005
+PROBE_PAIRS = 32
+PROBE_MIN_ALPHA = 0.5
 # Auto env-map resolution: the paper's 6×128×128 map went with 800-px images taken
 # with NeRF-synthetic's lens (f ≈ 1111 px). A reflection sweeps the map at a rate
 # proportional to the focal length, so texels per pixel stay the same when the face
@@ -86,24 +97,26 @@ class ScenePlan:
         if not self.envmap.pending:
             return
         excess = evidence.get("excess")
+        highlights = evidence.get("highlight_fraction", 0.0)
         if excess is None or not math.isfinite(excess):
             self.envmap = Decision(True, "no usable view pairs to measure: kept on", evidence)
             self.sh_degree = Decision(cfg.sh_degree, "kept (no evidence)", evidence)
-            return
-        if excess >= SPECULAR_EXCESS:
+        elif highlights >= SPECULAR_HIGHLIGHTS or excess >= SPECULAR_EXCESS:
             self.envmap = Decision(
-                True, f"specular: colour varies across views by {excess:.3f} beyond "
-                f"misregistration (≥ {SPECULAR_EXCESS})", evidence)  # fmt: skip
+                True, f"specular: {highlights:.1%} of surface points change colour by more "
+                f"than {HIGHLIGHT_DELTA} across views beyond misregistration "
+                f"(≥ {SPECULAR_HIGHLIGHTS:.0%}), mean excess {excess:.4f} "
+                f"(≥ {SPECULAR_EXCESS} also counts)", evidence)  # fmt: skip
             self.sh_degree = Decision(cfg.sh_degree, "view-dependent scene", evidence)
         elif excess >= MILD_EXCESS:
             self.envmap = Decision(
-                False, f"mildly view-dependent ({excess:.3f}): SH colour suffices", evidence
-            )
+                False, f"mildly view-dependent (mean excess {excess:.4f}, highlights "
+                f"{highlights:.2%}): SH colour suffices", evidence)  # fmt: skip
             self.sh_degree = Decision(cfg.sh_degree, "mild view dependence: SH kept", evidence)
         else:
             self.envmap = Decision(
-                False, f"diffuse: view-dependent variation {excess:.3f} < "
-                f"{MILD_EXCESS}", evidence)  # fmt: skip
+                False, f"diffuse: mean excess {excess:.4f} < {MILD_EXCESS}, highlights "
+                f"{highlights:.2%} < {SPECULAR_HIGHLIGHTS:.0%}", evidence)  # fmt: skip
             self.sh_degree = Decision(0, "no view dependence: SH degree 0", evidence)
         _apply_overrides(self, cfg, only=("envmap", "sh_degree"))
 
@@ -241,7 +254,7 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
 
 
 @torch.no_grad()
-def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any]:
+def probe_view_dependence(trainer: Trainer, max_pairs: int = PROBE_PAIRS) -> dict[str, Any]:
     """Measure colour variation of the same surface across views (see module doc)."""
     from core.gbuffer import render_gbuffer
 
@@ -256,12 +269,14 @@ def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any
     for i, j in pairs:
         vi, vj = views[i], views[j]
         gi, _ = render_gbuffer(
-            trainer.gaussians, vi.camera, sh_degree=0, backend=trainer.cfg.backend
-        )
+            trainer.gaussians, vi.camera, sh_degree=0, backend=trainer.cfg.backend,
+            antialiased=trainer.cfg.antialiased,
+        )  # fmt: skip
         gj, _ = render_gbuffer(
-            trainer.gaussians, vj.camera, sh_degree=0, backend=trainer.cfg.backend
-        )
-        ok = gi.depth_valid & (gi.alpha > 0.9)
+            trainer.gaussians, vj.camera, sh_degree=0, backend=trainer.cfg.backend,
+            antialiased=trainer.cfg.antialiased,
+        )  # fmt: skip
+        ok = gi.depth_valid & (gi.alpha > PROBE_MIN_ALPHA)
         if vi.mask is not None:
             ok = ok & (vi.mask > 0.9)
         idx = ok.reshape(-1).nonzero()[:, 0]
@@ -273,7 +288,7 @@ def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any
         uv_j, z_j = vj.camera.project(P)
         d_j, inside = bilinear_lookup(gj.depth, uv_j)
         a_j, _ = bilinear_lookup(gj.alpha, uv_j)
-        vis = inside & (z_j > 0) & ((d_j - z_j).abs() < 0.02 * z_j) & (a_j > 0.9)
+        vis = inside & (z_j > 0) & ((d_j - z_j).abs() < 0.02 * z_j) & (a_j > PROBE_MIN_ALPHA)
         if vj.mask is not None:
             m_j, _ = bilinear_lookup(vj.mask, uv_j)
             vis = vis & (m_j > 0.9)
@@ -302,4 +317,7 @@ def probe_view_dependence(trainer: Trainer, max_pairs: int = 8) -> dict[str, Any
         "captured_variation": float(g.mean()),
         "model_variation": float(m.mean()),
         "excess": float(g.mean() - m.mean()),
+        "highlight_fraction": float(
+            (g > HIGHLIGHT_DELTA).float().mean() - (m > HIGHLIGHT_DELTA).float().mean()
+        ),
     }
