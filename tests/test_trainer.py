@@ -34,9 +34,11 @@ def _params(t: Trainer) -> dict[str, torch.Tensor]:
 
 
 def test_full_run_writes_every_output(tiny_scene, tmp_path):
-    cfg = config_from_dict(TINY)
+    # 80 iterations: at 24 px each densification step costs antialiased splatting ~1 dB
+    # (split Gaussians shrink towards the low-pass and fade), recovered ~40 steps later.
+    cfg = config_from_dict({**TINY, "iterations": 80})
     result, _ = train_scene(tiny_scene, tmp_path, cfg)
-    assert result.status == "succeeded" and result.iteration == 40
+    assert result.status == "succeeded" and result.iteration == 80
     for name in (
         "checkpoint.pt",
         "point_cloud.ply",
@@ -49,7 +51,7 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         assert (tmp_path / name).is_file(), name
     rows = read_metrics(tmp_path / "metrics.jsonl")
     its = [r["iteration"] for r in rows]
-    assert its == sorted(set(its)) and its[0] == 0 and its[-1] == 40
+    assert its == sorted(set(its)) and its[0] == 0 and its[-1] == 80
     assert all(r["wall_time"] >= 0 for r in rows)
     assert {r["phase"] for r in rows} >= {"rgb", "multiview"}
     assert rows[-1]["psnr"] > rows[0]["psnr"]
