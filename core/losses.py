@@ -193,9 +193,14 @@ def multi_view_loss(
     mismatched pull less. Returns (loss, stats).
     """
     dtype, device = depth_ref.dtype, depth_ref.device
-    idx = valid_ref.reshape(-1).nonzero()[:, 0]
+    flat_valid = valid_ref.reshape(-1)
+    idx = flat_valid.nonzero()[:, 0]
     if n_pixels is not None and idx.numel() > n_pixels:
-        pick = torch.randperm(idx.numel(), generator=generator, device="cpu")[:n_pixels]
+        # One random key per pixel of the image, valid or not, so the generator
+        # advances by the same amount whatever the valid count: a single pixel's
+        # validity flipping by rounding must not reshuffle every later random draw.
+        keys = torch.rand(flat_valid.numel(), generator=generator, device="cpu")
+        pick = torch.argsort(keys[idx.cpu()], stable=True)[:n_pixels]
         idx = idx[pick.to(device)]
     zero = depth_ref.sum() * 0.0
     if idx.numel() == 0:
