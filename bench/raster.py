@@ -24,7 +24,14 @@ from bench.common import (
     random_gaussians,
     run_isolated,
 )
-from core.raster import BACKENDS, bin_gaussians, covariances_from, project_gaussians, rasterize
+from core.raster import (
+    BACKENDS,
+    PROJECTORS,
+    bin_gaussians,
+    covariances_from,
+    project_gaussians,
+    rasterize,
+)
 
 DEFAULT_SIZES = ["64:2000", "128:10000"]
 
@@ -33,11 +40,16 @@ def breakdown(case: dict, cam, means, quats, scales, opac, feats) -> dict:
     """Median ms of projection, binning and compositing (forward; and fwd+bwd)."""
     size, backend, repeat = case["size"], case["backend"], case.get("repeat", 5)
     composite = BACKENDS[backend][1]
+    fused = PROJECTORS.get(backend)
+
+    def project():
+        if fused is not None:
+            return fused(means, quats, scales, cam)
+        return project_gaussians(means, covariances_from(quats, scales), cam)
+
     with torch.no_grad():
-        t_proj = median_time(
-            lambda: project_gaussians(means, covariances_from(quats, scales), cam), repeat=repeat
-        )
-        proj = project_gaussians(means, covariances_from(quats, scales), cam)
+        t_proj = median_time(project, repeat=repeat)
+        proj = project()
         t_bin = median_time(
             lambda: bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size),
             repeat=repeat,

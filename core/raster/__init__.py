@@ -28,6 +28,7 @@ from core.raster.reference import rasterize_reference
 __all__ = [
     "BACKENDS",
     "PIPELINES",
+    "PROJECTORS",
     "Projected",
     "RasterResult",
     "TileBins",
@@ -122,6 +123,12 @@ _Pipeline = Callable[..., RasterResult]
 PIPELINES: dict[str, _Pipeline] = {}
 
 
+# Compiled projections (quats/scales → Projected) a compositing backend brings along;
+# the others use the PyTorch ``project_gaussians``. Same signature as project_fused.
+_Projector = Callable[..., Projected]
+PROJECTORS: dict[str, _Projector] = {}
+
+
 def _composite_unused(*_: object, **__: object) -> tuple[Tensor, Tensor]:
     raise RuntimeError("this backend runs the whole pipeline: call rasterize(), not its composite")
 
@@ -168,10 +175,14 @@ def rasterize(
         raise BackendUnavailableError(
             f"absgrad (AbsGS densification) needs the cuda backend; '{name}' does not compute it"
         )
-    if covariances is None:
-        covariances = covariances_from(quats, scales)
     W, H = camera.width, camera.height
-    proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
+    projector = PROJECTORS.get(name)
+    if covariances is None and projector is not None:
+        proj = projector(means, quats, scales, camera, near=near, far=far, eps2d=eps2d)
+    else:
+        if covariances is None:
+            covariances = covariances_from(quats, scales)
+        proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
     bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
     fn = BACKENDS[name][1]
     if antialiased and proj.compensation is not None:
@@ -181,6 +192,9 @@ def rasterize(
 
 
 from core.raster import cpu_backend as _cpu_backend  # noqa: E402,F401  registers "cpu"
+from core.raster.projection_fused import project_fused  # noqa: E402
+
+PROJECTORS["cpu"] = project_fused
 from core.raster import cuda_backend as _cuda_backend  # noqa: E402
 
 register_backend("cuda", _cuda_backend.available, _composite_unused)
