@@ -273,7 +273,9 @@ def _backward_worker(
     R = np.zeros(npix, np.float64)
     ga_T = np.zeros(npix, np.float64)  # dL/dalpha_out · T_final: the alpha output's share
     row_last = np.zeros(tile_size, np.int64)
-    acc = np.zeros(6 + n_ch, np.float64)
+    acc_f = np.zeros(n_ch, np.float64)
+    f_g = np.zeros(n_ch, np.float64)  # this Gaussian's features in float64
+    g_tile = np.zeros((npix, n_ch), np.float64)  # dL/dfeatures of the tile, float64
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -290,6 +292,8 @@ def _backward_worker(
                 T_cur[p] = final_T[py, px]
                 ga_T[p] = np.float64(grad_alpha[py, px]) * np.float64(final_T[py, px])
                 R[p] = 0.0
+                for ch in range(n_ch):
+                    g_tile[p, ch] = np.float64(grad_feat[py, px, ch])
                 row_last[py - y0] = max(row_last[py - y0], last[py, px])
             n_last = max(n_last, row_last[py - y0])
         for i in range(lo + n_last - 1, lo - 1, -1):
@@ -309,7 +313,15 @@ def _backward_worker(
             ad, bd, cd = np.float64(a), np.float64(b), np.float64(c)
             k = i - lo
             touched = False
-            acc[:] = 0.0
+            acc_f[:] = 0.0
+            for ch in range(n_ch):
+                f_g[ch] = np.float64(feats[g, ch])
+            a_mx = 0.0
+            a_my = 0.0
+            a_a = 0.0
+            a_b = 0.0
+            a_c = 0.0
+            a_o = 0.0
             for py in range(r0, r1):
                 r = py - y0
                 if k >= row_last[r]:
@@ -336,9 +348,9 @@ def _backward_worker(
                     wgt = al * T_before
                     gf = 0.0
                     for ch in range(n_ch):
-                        gc = np.float64(grad_feat[py, px, ch])
-                        gf += gc * np.float64(feats[g, ch])
-                        acc[6 + ch] += wgt * gc
+                        gc = g_tile[p, ch]
+                        gf += gc * f_g[ch]
+                        acc_f[ch] += wgt * gc
                     d_alpha = T_before * gf + (ga_T[p] - R[p]) / one_m
                     R[p] += wgt * gf
                     T_cur[p] = T_before
@@ -346,15 +358,21 @@ def _backward_worker(
                         continue  # clamped: alpha depends on neither o nor the footprint
                     d_pow = al * d_alpha
                     dxd, dyd = np.float64(dx), np.float64(dy)
-                    acc[0] += (ad * dxd + bd * dyd) * d_pow
-                    acc[1] += (cd * dyd + bd * dxd) * d_pow
-                    acc[2] -= 0.5 * dxd * dxd * d_pow
-                    acc[3] -= dxd * dyd * d_pow
-                    acc[4] -= 0.5 * dyd * dyd * d_pow
-                    acc[5] += np.float64(G) * d_alpha
+                    a_mx += (ad * dxd + bd * dyd) * d_pow
+                    a_my += (cd * dyd + bd * dxd) * d_pow
+                    a_a -= 0.5 * dxd * dxd * d_pow
+                    a_b -= dxd * dyd * d_pow
+                    a_c -= 0.5 * dyd * dyd * d_pow
+                    a_o += np.float64(G) * d_alpha
             if touched:
-                for j in range(6 + n_ch):
-                    gbuf[w, g, j] += acc[j]
+                gbuf[w, g, 0] += a_mx
+                gbuf[w, g, 1] += a_my
+                gbuf[w, g, 2] += a_a
+                gbuf[w, g, 3] += a_b
+                gbuf[w, g, 4] += a_c
+                gbuf[w, g, 5] += a_o
+                for ch in range(n_ch):
+                    gbuf[w, g, 6 + ch] += acc_f[ch]
 
 
 # ---------------------------------------------------------------------------------------
