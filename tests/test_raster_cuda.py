@@ -306,15 +306,28 @@ def test_cuda_absgrad_is_filled():
     assert bool((ga.abs() + 1e-6 >= g.abs()).all())  # Σ|g| ≥ |Σ g|
 
 
-@needs_cuda
-def test_cuda_training_runs(tmp_path):
+@pytest.mark.parametrize(
+    ("device", "backend"),
+    [
+        ("cpu", "cpu"),  # the same test body everywhere, so it is known to work
+        pytest.param("cuda", "cuda", marks=needs_cuda),
+    ],
+)
+def test_short_training_run(device, backend, tmp_path):
+    from core.run import train_scene
     from core.synthetic import make_sphere_scene
-    from core.trainer import Trainer
 
     scene = make_sphere_scene("glossy", n_train=8, n_test=2, size=48, samples=2)
     cfg = config_from_dict(
-        {"iterations": 90, "device": "cuda", "backend": "cuda", "init_points": 500}
+        {
+            "iterations": 90,
+            "device": device,
+            "backend": backend,
+            "init_points": 500,
+            "envmap_resolution": 8,
+            "eval": {"every": 45, "views": 2},
+        }
     )
-    result = Trainer(scene, cfg, tmp_path / "run").train()
+    result, _ = train_scene(scene, tmp_path / "run", cfg)
     assert result.status == "succeeded" and result.iteration == 90
     assert math.isfinite(result.last_metrics["psnr"]) and result.last_metrics["psnr"] > 12

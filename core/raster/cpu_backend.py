@@ -196,8 +196,15 @@ def _forward_worker(
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
-    done = np.zeros(tile_size * tile_size, np.uint8)
+    npix = tile_size * tile_size
+    done = np.zeros(npix, np.uint8)
     row_left = np.zeros(tile_size, np.int64)
+    # The tile's running state lives in small local buffers (L1-sized) and is written
+    # back once per tile: the image rows a tile spans are far apart in memory.
+    T_loc = np.empty(npix, out_T.dtype)
+    F_loc = np.empty((npix, n_ch), out_feat.dtype)
+    last_loc = np.empty(npix, out_last.dtype)
+    f_g = np.empty(n_ch, feats.dtype)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -210,6 +217,9 @@ def _forward_worker(
         for r in range(y1 - y0):
             row_left[r] = x1 - x0
             done[r * tile_size : r * tile_size + x1 - x0] = 0
+        T_loc[:] = one
+        F_loc[:, :] = 0
+        last_loc[:] = 0
         for i in range(lo, hi):
             g = gauss_ids[i]
             m = mode[g]
@@ -224,6 +234,8 @@ def _forward_worker(
             r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
+            for ch in range(n_ch):
+                f_g[ch] = feats[g, ch]
             for py in range(r0, r1):
                 r = py - y0
                 if row_left[r] == 0:
@@ -243,7 +255,7 @@ def _forward_worker(
                         alpha = a_max
                     if not (alpha >= a_min):
                         continue
-                    T = out_T[py, px]
+                    T = T_loc[p]
                     test_T = T * (one - alpha)
                     if test_T < t_min:
                         done[p] = 1
@@ -252,11 +264,18 @@ def _forward_worker(
                         continue
                     wgt = alpha * T
                     for ch in range(n_ch):
-                        out_feat[py, px, ch] += feats[g, ch] * wgt
-                    out_T[py, px] = test_T
-                    out_last[py, px] = i - lo + 1
+                        F_loc[p, ch] += f_g[ch] * wgt
+                    T_loc[p] = test_T
+                    last_loc[p] = i - lo + 1
             if n_left == 0:
                 break
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                p = (py - y0) * tile_size + (px - x0)
+                out_T[py, px] = T_loc[p]
+                out_last[py, px] = last_loc[p]
+                for ch in range(n_ch):
+                    out_feat[py, px, ch] = F_loc[p, ch]
 
 
 @njit(nogil=True, fastmath=False, cache=True)
@@ -276,6 +295,7 @@ def _backward_worker(
     acc_f = np.zeros(n_ch, np.float64)
     f_g = np.zeros(n_ch, np.float64)  # this Gaussian's features in float64
     g_tile = np.zeros((npix, n_ch), np.float64)  # dL/dfeatures of the tile, float64
+    last_t = np.zeros(npix, np.int64)  # the tile's slice of ``last``
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -292,6 +312,7 @@ def _backward_worker(
                 T_cur[p] = final_T[py, px]
                 ga_T[p] = np.float64(grad_alpha[py, px]) * np.float64(final_T[py, px])
                 R[p] = 0.0
+                last_t[p] = last[py, px]
                 for ch in range(n_ch):
                     g_tile[p, ch] = np.float64(grad_feat[py, px, ch])
                 row_last[py - y0] = max(row_last[py - y0], last[py, px])
@@ -329,7 +350,8 @@ def _backward_worker(
                 q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
                 dy = ys[py] - my
                 for px in range(q0, q1):
-                    if k >= last[py, px]:
+                    p = r * tile_size + (px - x0)
+                    if k >= last_t[p]:
                         continue
                     dx = xs[px] - mx
                     power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
@@ -341,7 +363,6 @@ def _backward_worker(
                     if not (alpha >= a_min):
                         continue
                     touched = True
-                    p = r * tile_size + (px - x0)
                     al = np.float64(alpha)
                     one_m = 1.0 - al
                     T_before = T_cur[p] / one_m
