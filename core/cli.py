@@ -178,7 +178,7 @@ def _register_core(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "demo",
         help="generate a small glossy scene and train on it (CPU, a few minutes)",
-        description="Renders an analytic glossy sphere (64 + 4 views), then trains on it with "
+        description="Renders an analytic glossy sphere (24 + 4 views), then trains on it with "
         "the full method at a CPU budget. Needs no GPU, no network and no data files.",
     )
     p.add_argument("--out", default="runs/demo", help="folder for the scene and the run")
