@@ -174,3 +174,40 @@ def test_cpu_backend_render_matches_reference(antialiased):
     torch.testing.assert_close(cpu[1], ref[1], rtol=1e-7, atol=1e-7)
     for a, b in zip(ref[2], cpu[2], strict=True):
         torch.testing.assert_close(b, a, rtol=1e-6, atol=1e-6 * float(a.abs().max()))
+
+
+def test_given_covariances_match_reference_and_only_means_get_gradient():
+    """The viewer's path: precomputed, frozen covariances (e.g. the full-cov ablation)."""
+    cam = _camera()
+    m, q, s = _gaussians(200, 4, F64)
+    covs = covariances_from(q, s)
+    ref = project_gaussians(m, covs, cam)
+    mr = m.clone().requires_grad_(True)
+    fused = project_fused(mr, None, None, cam, covariances=covs)
+    vis = ref.radii > 0
+    assert torch.equal(vis, fused.radii > 0)
+    for name in ("means2d", "conics", "depths", "compensation"):
+        a, b = getattr(ref, name)[vis], getattr(fused, name)[vis]
+        torch.testing.assert_close(b, a, rtol=1e-9, atol=1e-9, msg=name)
+    # means gradient equals the quats/scales path's
+    w = torch.randn(200, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
+    w = w * vis[:, None]
+    (g_cov,) = torch.autograd.grad((fused.means2d * w).sum() + fused.conics.sum(), mr)
+    mq = m.clone().requires_grad_(True)
+    via_q = project_fused(mq, q, s, cam)
+    (g_q,) = torch.autograd.grad((via_q.means2d * w).sum() + via_q.conics.sum(), mq)
+    torch.testing.assert_close(g_cov, g_q, rtol=1e-9, atol=1e-9)
+    with pytest.raises(ValueError, match="no gradient to covariances"):
+        project_fused(m, None, None, cam, covariances=covs.clone().requires_grad_(True))
+
+
+def test_in_place_change_before_backward_is_refused():
+    cam = _camera()
+    params = [t.clone().requires_grad_(True) for t in _gaussians(20, 6, F64)]
+    leaf_means = params[0]
+    means = leaf_means * 1.0
+    proj = project_fused(means, params[1], params[2], cam)
+    with torch.no_grad():
+        means.add_(0.1)
+    with pytest.raises(RuntimeError, match="modified by an inplace operation"):
+        proj.means2d.sum().backward()

@@ -177,8 +177,11 @@ def rasterize(
         )
     W, H = camera.width, camera.height
     projector = PROJECTORS.get(name)
-    if covariances is None and projector is not None:
-        proj = projector(means, quats, scales, camera, near=near, far=far, eps2d=eps2d)
+    if projector is not None and (covariances is None or not covariances.requires_grad):
+        proj = projector(
+            means, quats, scales, camera, covariances=covariances, near=near, far=far,
+            eps2d=eps2d,
+        )  # fmt: skip
     else:
         if covariances is None:
             covariances = covariances_from(quats, scales)

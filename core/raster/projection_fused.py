@@ -60,6 +60,21 @@ def _unit_quat(q, i):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, fastmath=False)
+def _given_cam_cov(covs, Rc, i, Sc, M):  # pragma: no cover - numba
+    """Sc = Rc Σᵢ Rcᵀ for a given world covariance (M is scratch)."""
+    for r in range(3):
+        for k in range(3):
+            M[r, k] = (
+                Rc[r, 0] * float(covs[i, 0, k])
+                + Rc[r, 1] * float(covs[i, 1, k])
+                + Rc[r, 2] * float(covs[i, 2, k])
+            )
+    for r in range(3):
+        for c in range(3):
+            Sc[r, c] = M[r, 0] * Rc[c, 0] + M[r, 1] * Rc[c, 1] + M[r, 2] * Rc[c, 2]
+
+
+@njit(cache=True, nogil=True, fastmath=False)
 def _cam_cov(R, s, Rc, i, Sc, M):  # pragma: no cover - numba
     """Sc = Rc (R diag(s²) Rᵀ) Rcᵀ for Gaussian i (R already filled; M is scratch)."""
     for r in range(3):
@@ -75,19 +90,25 @@ def _cam_cov(R, s, Rc, i, Sc, M):  # pragma: no cover - numba
 
 @njit(cache=True, nogil=True, fastmath=False)
 def _forward_range(
-    lo, hi, means, quats, scales, Rc, tc, intr, lims, params, means2d, conics, depths,
+    lo, hi, means, quats, scales, covs, Rc, tc, intr, lims, params, means2d, conics, depths,
     radii, comp, state,
 ):  # fmt: skip  # pragma: no cover - numba
+    """Project Gaussians lo..hi-1; ``covs`` (N, 3, 3) replaces quats/scales when N > 0."""
     fx, fy, cx, cy, W, H = intr[0], intr[1], intr[2], intr[3], intr[4], intr[5]
     lxn, lxp, lyn, lyp = lims[0], lims[1], lims[2], lims[3]
     near, far, eps2d, eps_dt = params[0], params[1], params[2], params[3]
+    use_covs = covs.shape[0] > 0
     R = np.empty((3, 3))
     Sc = np.empty((3, 3))
     M = np.empty((3, 3))
     for i in range(lo, hi):
-        w, qx, qy, qz, qn = _unit_quat(quats, i)
-        _rotmat(w, qx, qy, qz, R)
-        _cam_cov(R, scales, Rc, i, Sc, M)
+        if use_covs:
+            qn = 1.0
+            _given_cam_cov(covs, Rc, i, Sc, M)
+        else:
+            w, qx, qy, qz, qn = _unit_quat(quats, i)
+            _rotmat(w, qx, qy, qz, R)
+            _cam_cov(R, scales, Rc, i, Sc, M)
         mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
         x = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
         y = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
@@ -145,12 +166,14 @@ def _forward_range(
 
 @njit(cache=True, nogil=True, fastmath=False)
 def _backward_range(
-    lo, hi, means, quats, scales, Rc, tc, intr, lims, params, conics, comp, state,
+    lo, hi, means, quats, scales, covs, Rc, tc, intr, lims, params, conics, comp, state,
     g_m2d, g_con, g_comp, g_means, g_quats, g_scales,
 ):  # fmt: skip  # pragma: no cover - numba
+    """Gradients of Gaussians lo..hi-1; with given ``covs`` only the means get one."""
     fx, fy = intr[0], intr[1]
     lxn, lxp, lyn, lyp = lims[0], lims[1], lims[2], lims[3]
     eps2d = params[2]
+    use_covs = covs.shape[0] > 0
     R = np.empty((3, 3))
     Sc = np.empty((3, 3))
     M = np.empty((3, 3))
@@ -164,9 +187,13 @@ def _backward_range(
         if gu == 0.0 and gv == 0.0 and gA == 0.0 and gB == 0.0 and gC == 0.0 and gk == 0.0:
             continue
         st = state[i]
-        w, qx, qy, qz, qn = _unit_quat(quats, i)
-        _rotmat(w, qx, qy, qz, R)
-        _cam_cov(R, scales, Rc, i, Sc, M)
+        w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
+        if use_covs:
+            _given_cam_cov(covs, Rc, i, Sc, M)
+        else:
+            w, qx, qy, qz, _ = _unit_quat(quats, i)
+            _rotmat(w, qx, qy, qz, R)
+            _cam_cov(R, scales, Rc, i, Sc, M)
         mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
         x = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
         y = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
@@ -250,6 +277,8 @@ def _backward_range(
         g_z = g_zs if st[_S_IND] > 0.0 else 0.0
         for j in range(3):
             g_means[i, j] = Rc[0, j] * g_x + Rc[1, j] * g_y + Rc[2, j] * g_z
+        if use_covs:
+            continue
         # Σc = Rc Σ Rcᵀ → dL/dΣ = Rcᵀ G Rc; Σ = M Mᵀ, M = R diag(s) → dL/dM = 2 (dL/dΣ) M.
         for r in range(3):
             for s_ in range(r, 3):
@@ -334,15 +363,22 @@ def _run(kernel, n: int, args: tuple) -> None:
 
 
 class FusedProjection(torch.autograd.Function):
-    """(means, quats, scales) → (means2d, conics, compensation); depths and radii ride along."""
+    """(means, quats, scales | covs) → (means2d, conics, compensation); depths and radii
+    ride along. Given covariances get no gradient (callers check)."""
 
     @staticmethod
-    def forward(ctx, means, quats, scales, camera, near, far, eps2d):
+    def forward(ctx, means, quats, scales, covs, camera, near, far, eps2d):
         dtype = means.dtype
         n = means.shape[0]
         m = means.detach().contiguous().numpy()
-        q = quats.detach().contiguous().numpy()
-        s = scales.detach().contiguous().numpy()
+        if covs is None:
+            q = quats.detach().contiguous().numpy()
+            s = scales.detach().contiguous().numpy()
+            c = np.empty((0, 3, 3), np.float64)
+        else:
+            q = np.empty((0, 4), np.float64)
+            s = np.empty((0, 3), np.float64)
+            c = covs.detach().contiguous().numpy()
         cam = _camera_arrays(camera, dtype, near, far, eps2d)
         means2d = np.empty((n, 2), np.float64)
         conics = np.empty((n, 3), np.float64)
@@ -350,9 +386,14 @@ class FusedProjection(torch.autograd.Function):
         radii = np.empty(n, np.int64)
         comp = np.empty(n, np.float64)
         state = np.empty((n, _N_STATE), np.float64)
-        _run(_forward_range, n, (m, q, s, *cam, means2d, conics, depths, radii, comp, state))
-        ctx.save_for_backward(means, quats, scales)
-        ctx.arrays = (m, q, s, cam, conics, comp, state)
+        args = (m, q, s, c, *cam, means2d, conics, depths, radii, comp, state)
+        _run(_forward_range, n, args)
+        # The numpy views alias the inputs: saving them makes autograd refuse a backward
+        # after an in-place change instead of silently using the new values.
+        ctx.save_for_backward(means, quats, scales, covs)
+        ctx.arrays = (m, q, s, c, cam, conics, comp, state)
+        ctx.dtypes = (means.dtype, None if quats is None else quats.dtype,
+                      None if scales is None else scales.dtype)  # fmt: skip
         out = [torch.from_numpy(a).to(dtype) for a in (means2d, conics, comp, depths)]
         radii_t = torch.from_numpy(radii)
         ctx.mark_non_differentiable(out[3], radii_t)
@@ -361,8 +402,8 @@ class FusedProjection(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_m2d, g_con, g_comp, _g_depth, _g_radii):
-        means, quats, scales = ctx.saved_tensors
-        m, q, s, cam, conics, comp, state = ctx.arrays
+        ctx.saved_tensors  # noqa: B018  (raises if an input was modified in place)
+        m, q, s, c, cam, conics, comp, state = ctx.arrays
         n = m.shape[0]
 
         def arr(g: Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
@@ -374,15 +415,17 @@ class FusedProjection(torch.autograd.Function):
         gq = np.zeros((n, 4), np.float64)
         gs = np.zeros((n, 3), np.float64)
         args = (
-            m, q, s, *cam, conics, comp, state,
+            m, q, s, c, *cam, conics, comp, state,
             arr(g_m2d, (n, 2)), arr(g_con, (n, 3)), arr(g_comp, (n,)), gm, gq, gs,
         )  # fmt: skip
         _run(_backward_range, n, args)
         need = ctx.needs_input_grad
+        d_means, d_quats, d_scales = ctx.dtypes
         return (
-            torch.from_numpy(gm).to(means.dtype) if need[0] else None,
-            torch.from_numpy(gq).to(quats.dtype) if need[1] else None,
-            torch.from_numpy(gs).to(scales.dtype) if need[2] else None,
+            torch.from_numpy(gm).to(d_means) if need[0] else None,
+            torch.from_numpy(gq).to(d_quats) if need[1] else None,
+            torch.from_numpy(gs).to(d_scales) if need[2] else None,
+            None,
             None,
             None,
             None,
@@ -392,21 +435,29 @@ class FusedProjection(torch.autograd.Function):
 
 def project_fused(
     means: Tensor,
-    quats: Tensor,
-    scales: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
     camera: Camera,
     *,
+    covariances: Tensor | None = None,
     near: float = 0.01,
     far: float = 1e10,
     eps2d: float = 0.3,
 ) -> Projected:
     """``project_gaussians(means, covariances_from(quats, scales), camera)``, compiled.
 
-    CPU tensors only. ``cov2d`` of the result is rebuilt from the conics without
-    gradient (nothing downstream differentiates it).
+    CPU tensors only. ``covariances`` (N, 3, 3) replace quats/scales; they get no
+    gradient, so they must not require one (the viewer's precomputed, frozen model;
+    the full-covariance ablation trains through the torch projection instead).
+    ``cov2d`` of the result is rebuilt from the conics without gradient (nothing
+    downstream differentiates it).
     """
+    if covariances is not None and covariances.requires_grad:
+        raise ValueError("project_fused gives no gradient to covariances; use project_gaussians")
+    if covariances is None and (quats is None or scales is None):
+        raise ValueError("project_fused needs quats and scales, or covariances")
     means2d, conics, comp, depths, radii = FusedProjection.apply(
-        means, quats, scales, camera, float(near), float(far), float(eps2d)
+        means, quats, scales, covariances, camera, float(near), float(far), float(eps2d)
     )
     with torch.no_grad():
         a, b, c = conics.unbind(-1)
