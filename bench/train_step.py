@@ -82,7 +82,11 @@ def plain_render(gs: Gaussians, cam: Camera, backend: str) -> torch.Tensor:
 
 def run(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
-    if args.threads:
+    if args.split_threads:
+        from core.threads import configure_cpu_threads
+
+        configure_cpu_threads(args.threads or None)
+    elif args.threads:
         torch.set_num_threads(args.threads)
     backend = resolve_backend(args.backend, device)
     cfg = TrainConfig(device=args.device, backend=backend)
@@ -199,6 +203,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=10)
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
+    ap.add_argument(
+        "--split-threads",
+        action="store_true",
+        help="Glint's process layout (core.threads): torch on one thread, the compiled "
+        "kernels on --threads (default: every usable CPU)",
+    )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)
     res = run(args)

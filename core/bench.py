@@ -128,6 +128,7 @@ def render_speed(
     """FPS of the full deferred renderer (G-buffer + shading) at the test resolution."""
     from core.metrics import time_renders
     from core.raster import resolve_backend
+    from core.raster.cpu_backend import kernel_threads
     from core.trainer import eval_background, render_view
 
     bg = eval_background(trainer.cfg, trainer.device)
@@ -146,7 +147,7 @@ def render_speed(
         resolution=[cams[0].width, cams[0].height],
         device=str(trainer.device),
         backend=resolve_backend(trainer.cfg.backend, trainer.device),
-        threads=torch.get_num_threads(),
+        threads=kernel_threads(),
     )
     return out
 
@@ -703,7 +704,7 @@ def _bench_preamble(
         fu = (ev.get("mesh") or {}).get("fusion") or {}
         lines += [
             f"- Device: {fps['device']}, rasteriser backend `{fps['backend']}`, "
-            f"{fps['threads']} torch threads; FPS of the deferred renderer at "
+            f"{fps['threads']} kernel threads; FPS of the deferred renderer at "
             f"{fps['resolution'][0]}×{fps['resolution'][1]} (median over {fps['frames']} frames "
             "after warm-up"
             + ("; re-timed back to back in one process" if fps.get("refreshed") else "")

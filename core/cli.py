@@ -23,12 +23,13 @@ def _cmd_info(args: argparse.Namespace) -> int:
     import torch
 
     from core.raster import BACKENDS
+    from core.raster.cpu_backend import kernel_threads
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     info = {
         "glint": __version__,
         "torch": torch.__version__,
-        "threads": torch.get_num_threads(),
+        "threads": {"torch": torch.get_num_threads(), "kernels": kernel_threads()},
         "devices": devices,
         "backends": {
             name: {d: (ok(torch.device(d)) or "available") for d in devices}
@@ -202,10 +203,11 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
 
 
 def _set_threads(n: int | None) -> None:
+    """``--threads N``: the compiled kernels' thread count (torch stays on one)."""
     if n:
-        import torch
+        from core.threads import configure_cpu_threads
 
-        torch.set_num_threads(n)
+        configure_cpu_threads(n)
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
@@ -311,7 +313,11 @@ def _nested(flat: dict) -> dict:
 def _register_eval(sub: argparse._SubParsersAction) -> None:
     from core.bench import CONFIGS, DEFAULT_CHAMFER_POINTS
 
-    threads = {"type": int, "help": "torch CPU threads (default: torch's choice)"}
+    threads = {
+        "type": int,
+        "help": "CPU threads for the compiled kernels; torch's own ops run on one "
+        "(default: GLINT_KERNEL_THREADS, else every usable CPU)",
+    }
     p = sub.add_parser(
         "mesh",
         help="extract a mesh (TSDF of the planar depths) from a training run",
@@ -413,6 +419,12 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
+        from core.threads import configure_cpu_threads
+
+        try:
+            configure_cpu_threads()
+        except ValueError as exc:
+            raise GlintError(str(exc)) from None
         return int(args.func(args) or 0)
     except GlintError as exc:
         print(f"glint {args.command}: error: {exc}", file=sys.stderr)

@@ -13,6 +13,17 @@ import torch
 # 84 ms vs 1.35 s per training step). One thread keeps test time independent of load.
 torch.set_num_threads(1)
 
+
+@pytest.fixture(autouse=True)
+def _one_thread_layout():
+    """Undo a CLI test's ``configure_cpu_threads`` (main() applies it) after each test."""
+    yield
+    from core.raster.cpu_backend import set_kernel_threads
+
+    set_kernel_threads(None)
+    torch.set_num_threads(1)
+
+
 # ../shared/data beside the repository, or GLINT_SHARED_DATA
 SHARED_DATA = Path(
     os.environ.get("GLINT_SHARED_DATA", Path(__file__).resolve().parents[2] / "shared" / "data")

@@ -11,7 +11,15 @@ from bench.train_step import format_table, neighbour_camera, run
 
 def test_train_step_bench_runs_on_cpu():
     args = argparse.Namespace(
-        device="cpu", backend="cpu", size=32, n=600, envmap=8, repeat=1, warmup=0, threads=1
+        device="cpu",
+        backend="cpu",
+        size=32,
+        n=600,
+        envmap=8,
+        repeat=1,
+        warmup=0,
+        threads=1,
+        split_threads=False,
     )
     res = run(args)
     names = [r["case"] for r in res["rows"]]

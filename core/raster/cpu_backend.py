@@ -16,7 +16,8 @@ Why it is fast:
   Every visited pixel is evaluated with the reference formula, so skipping never
   changes a result; it only avoids exp() where alpha is certainly below 1/255.
 * No Python loop over tiles: one compiled call per worker thread (``nogil``; as
-  many workers as ``torch.get_num_threads()``) composites tiles w, w + n_workers, ...
+  many workers as ``set_kernel_threads`` says, else ``torch.get_num_threads()``)
+  composites tiles w, w + n_workers, ...
   Striping balances the centre-heavy load statically and deterministically.
 
 Backward is 3DGS-style: the forward stores each pixel's final T and the count of
@@ -65,7 +66,7 @@ except ImportError as exc:  # pragma: no cover - numba is a declared dependency
         return lambda fn: fn
 
 
-__all__ = ["CpuComposite", "available", "rasterize_cpu"]
+__all__ = ["CpuComposite", "available", "kernel_threads", "rasterize_cpu", "set_kernel_threads"]
 
 # Culling margin: a pixel is skipped only when power < log(ALPHA_MIN / o) - _MARGIN / 2,
 # i.e. alpha is below 1/255 by ≥ 5 %, far beyond float32 rounding of the power.
@@ -431,9 +432,23 @@ def _run_workers(kernel: Callable[..., None], n_workers: int, args: tuple) -> No
         f.result()
 
 
-def _num_workers() -> int:
-    """Worker threads follow torch's intra-op thread count."""
-    return max(1, torch.get_num_threads())
+_KERNEL_THREADS: int | None = None
+
+
+def set_kernel_threads(n: int | None) -> None:
+    """Threads for the compiled kernels; None: follow ``torch.get_num_threads()``."""
+    global _KERNEL_THREADS
+    if n is not None and n < 1:
+        raise ValueError(f"kernel threads must be >= 1, got {n}")
+    _KERNEL_THREADS = n
+
+
+def kernel_threads() -> int:
+    """The configured kernel thread count (core.threads), else torch's intra-op count."""
+    return _KERNEL_THREADS or max(1, torch.get_num_threads())
+
+
+_num_workers = kernel_threads
 
 
 def _np(t: Tensor, dtype: torch.dtype) -> np.ndarray:

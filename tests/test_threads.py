@@ -1,0 +1,69 @@
+"""The CPU thread layout: torch on one thread, the compiled kernels on the rest."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from core.raster import cpu_backend
+from core.threads import ENV_VAR, configure_cpu_threads, kernel_threads_from_env, usable_cpus
+
+
+@pytest.fixture
+def restore_threads():
+    before = torch.get_num_threads()
+    yield
+    cpu_backend.set_kernel_threads(None)
+    torch.set_num_threads(before)
+
+
+def test_layout_puts_torch_on_one_thread_and_kernels_on_the_rest(restore_threads, monkeypatch):
+    monkeypatch.delenv(ENV_VAR, raising=False)
+    assert configure_cpu_threads() == usable_cpus()
+    assert torch.get_num_threads() == 1
+    assert cpu_backend.kernel_threads() == usable_cpus()
+    assert configure_cpu_threads(3) == 3 and cpu_backend.kernel_threads() == 3
+    monkeypatch.setenv(ENV_VAR, "2")
+    assert configure_cpu_threads() == 2
+
+
+def test_unset_kernel_threads_follow_torch(restore_threads):
+    cpu_backend.set_kernel_threads(None)
+    torch.set_num_threads(1)
+    assert cpu_backend.kernel_threads() == 1
+    with pytest.raises(ValueError, match=">= 1"):
+        cpu_backend.set_kernel_threads(0)
+
+
+@pytest.mark.parametrize("raw", ["zero", "0", "-2", "1.5"])
+def test_bad_env_value_is_a_clear_error(raw, monkeypatch):
+    monkeypatch.setenv(ENV_VAR, raw)
+    with pytest.raises(ValueError, match=ENV_VAR):
+        kernel_threads_from_env()
+
+
+def test_cli_reports_a_bad_env_value(monkeypatch, capsys):
+    from core.cli import main
+
+    monkeypatch.setenv(ENV_VAR, "lots")
+    assert main(["info"]) == 2
+    assert ENV_VAR in capsys.readouterr().err
+
+
+def test_results_do_not_depend_on_the_kernel_thread_count(restore_threads):
+    """Tiles are assigned to workers statically; gradients are summed per worker slot."""
+    from bench.common import bench_camera, random_gaussians
+    from core.raster import rasterize
+
+    cam = bench_camera(48)
+    base = random_gaussians(1500, channels=4)
+    out = {}
+    for n in (1, 3):
+        cpu_backend.set_kernel_threads(n)
+        params = [t.clone().requires_grad_(True) for t in base]
+        r = rasterize(*params, cam, backend="cpu", antialiased=True)
+        (r.features.sum() + r.alpha.sum()).backward()
+        out[n] = (r.features.detach(), [p.grad for p in params])
+    torch.testing.assert_close(out[1][0], out[3][0], rtol=0, atol=0)
+    for a, b in zip(out[1][1], out[3][1], strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
