@@ -34,8 +34,10 @@ from core.checkpoint import save_checkpoint
 from core.config import TrainConfig
 from core.envmap import EnvMap, texel_directions
 from core.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
+from core.raster.cpu_backend import kernel_threads
 from core.sh import rgb_to_sh0
 from core.synthetic import albedo, default_env, surface_points
+from core.threads import configure_cpu_threads
 from viewer_web.protocol import unpack_frame
 
 
@@ -174,6 +176,7 @@ def run(n: int, size: int, seconds: float) -> dict[str, Any]:
         "size": size,
         "device": device,
         "torch_threads": torch.get_num_threads(),
+        "kernel_threads": kernel_threads(),
         "time_to_first_frame_s": round(ttff, 3),
         "first_frame_render_ms": first["render_ms"],
         "moving": {
@@ -197,6 +200,7 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--seconds", type=float, default=6.0)
     a = ap.parse_args()
+    configure_cpu_threads()  # as `glint serve` does
     print(json.dumps(run(a.gaussians, a.size, a.seconds), indent=2))
 
 
