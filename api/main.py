@@ -84,6 +84,10 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
+        if settings.kernel_threads is not None:  # also read from a .env file
+            from core.threads import configure_cpu_threads
+
+            configure_cpu_threads(settings.kernel_threads)
         database = Database(settings.db_url)
         if settings.auto_migrate:
             upgrade(database.engine)

@@ -61,6 +61,12 @@ class Settings(BaseSettings):
     threads: int = Field(
         40, ge=1, description="worker threads for blocking route code (database, files)"
     )
+    kernel_threads: int | None = Field(
+        None,
+        ge=1,
+        description="threads of the compiled CPU rasteriser kernels (training, viewer "
+        "renders); torch's own ops run on one. None: every CPU the process may use",
+    )
 
     auth_cache_s: float = Field(
         5.0,
