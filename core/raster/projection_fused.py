@@ -89,6 +89,54 @@ def _cam_cov(R, s, Rc, i, Sc, M):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, fastmath=False)
+def _load_cam_cov(use_covs, covs, quats, scales, Rc, i, R, Sc, M):  # pragma: no cover
+    """Fill Sc (camera-space Σ) for Gaussian i; returns its unit quaternion and |q|
+    (the identity and 1 for a given covariance)."""
+    if use_covs:
+        _given_cam_cov(covs, Rc, i, Sc, M)
+        return 1.0, 0.0, 0.0, 0.0, 1.0
+    w, qx, qy, qz, qn = _unit_quat(quats, i)
+    _rotmat(w, qx, qy, qz, R)
+    _cam_cov(R, scales, Rc, i, Sc, M)
+    return w, qx, qy, qz, qn
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _centre(means, Rc, tc, i):  # pragma: no cover - numba
+    """Camera-space centre (x, y, z) of Gaussian i."""
+    mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
+    x = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
+    y = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
+    z = Rc[2, 0] * mx + Rc[2, 1] * my + Rc[2, 2] * mz + tc[2]
+    return x, y, z
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _ewa(x, y, zs, fx, fy, lims, Sc):  # pragma: no cover - numba
+    """Clamped centre, EWA Jacobian entries and the unfiltered 2D covariance J Σc Jᵀ."""
+    clx = min(max(x / zs, -lims[0]), lims[1])
+    cly = min(max(y / zs, -lims[2]), lims[3])
+    j00, j11 = fx / zs, fy / zs
+    j02, j12 = -fx * clx / zs, -fy * cly / zs  # = -fx·tx/zs², tx = zs·clamp(x/zs)
+    a_raw = j00 * j00 * Sc[0, 0] + 2.0 * j00 * j02 * Sc[0, 2] + j02 * j02 * Sc[2, 2]
+    b_raw = j00 * j11 * Sc[0, 1] + j00 * j12 * Sc[0, 2] + j02 * j11 * Sc[2, 1]
+    b_raw += j02 * j12 * Sc[2, 2]
+    c_raw = j11 * j11 * Sc[1, 1] + 2.0 * j11 * j12 * Sc[1, 2] + j12 * j12 * Sc[2, 2]
+    return clx, cly, j00, j02, j11, j12, a_raw, b_raw, c_raw
+
+
+@njit(cache=True, nogil=True, fastmath=False)
+def _psd_filtered(a_raw, b_raw, c_raw, eps2d, eps_dt):  # pragma: no cover - numba
+    """The reference's PSD clamp and low-pass: (a0, c0, lim, b, a, c, a0c0 − b², det0)."""
+    a0 = max(a_raw, 0.0)
+    c0 = max(c_raw, 0.0)
+    lim = math.sqrt(a0 * c0) * (1.0 - 4.0 * eps_dt)
+    b = min(max(b_raw, -lim), lim)
+    d0_raw = a0 * c0 - b * b
+    return a0, c0, lim, b, a0 + eps2d, c0 + eps2d, d0_raw, max(d0_raw, 0.0)
+
+
+@njit(cache=True, nogil=True, fastmath=False)
 def _forward_range(
     lo, hi, means, quats, scales, covs, Rc, tc, intr, lims, params, means2d, conics, depths,
     radii, comp, state,
@@ -102,35 +150,13 @@ def _forward_range(
     Sc = np.empty((3, 3))
     M = np.empty((3, 3))
     for i in range(lo, hi):
-        if use_covs:
-            qn = 1.0
-            _given_cam_cov(covs, Rc, i, Sc, M)
-        else:
-            w, qx, qy, qz, qn = _unit_quat(quats, i)
-            _rotmat(w, qx, qy, qz, R)
-            _cam_cov(R, scales, Rc, i, Sc, M)
-        mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
-        x = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
-        y = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
-        z = Rc[2, 0] * mx + Rc[2, 1] * my + Rc[2, 2] * mz + tc[2]
+        _, _, _, _, qn = _load_cam_cov(use_covs, covs, quats, scales, Rc, i, R, Sc, M)
+        x, y, z = _centre(means, Rc, tc, i)
         in_depth = (z > near) and (z < far)
         zs = z if in_depth else 1.0
         rx, ry = x / zs, y / zs
-        clx = min(max(rx, -lxn), lxp)
-        cly = min(max(ry, -lyn), lyp)
-        j00, j11 = fx / zs, fy / zs
-        j02, j12 = -fx * clx / zs, -fy * cly / zs  # = -fx·tx/zs², tx = zs·clamp(x/zs)
-        a_raw = j00 * j00 * Sc[0, 0] + 2.0 * j00 * j02 * Sc[0, 2] + j02 * j02 * Sc[2, 2]
-        b_raw = j00 * j11 * Sc[0, 1] + j00 * j12 * Sc[0, 2] + j02 * j11 * Sc[2, 1]
-        b_raw += j02 * j12 * Sc[2, 2]
-        c_raw = j11 * j11 * Sc[1, 1] + 2.0 * j11 * j12 * Sc[1, 2] + j12 * j12 * Sc[2, 2]
-        a0 = max(a_raw, 0.0)
-        c0 = max(c_raw, 0.0)
-        lim = math.sqrt(a0 * c0) * (1.0 - 4.0 * eps_dt)
-        b = min(max(b_raw, -lim), lim)
-        a, c = a0 + eps2d, c0 + eps2d
-        d0_raw = a0 * c0 - b * b
-        det0 = max(d0_raw, 0.0)
+        _, _, _, _, _, _, a_raw, b_raw, c_raw = _ewa(x, y, zs, fx, fy, lims, Sc)
+        a0, c0, lim, b, a, c, d0_raw, det0 = _psd_filtered(a_raw, b_raw, c_raw, eps2d, eps_dt)
         det = det0 + eps2d * (a0 + c0) + eps2d * eps2d
         ok = in_depth and det > 0.0 and math.isfinite(det)
         ds = det if ok else 1.0
@@ -171,7 +197,6 @@ def _backward_range(
 ):  # fmt: skip  # pragma: no cover - numba
     """Gradients of Gaussians lo..hi-1; with given ``covs`` only the means get one."""
     fx, fy = intr[0], intr[1]
-    lxn, lxp, lyn, lyp = lims[0], lims[1], lims[2], lims[3]
     eps2d = params[2]
     use_covs = covs.shape[0] > 0
     R = np.empty((3, 3))
@@ -187,31 +212,11 @@ def _backward_range(
         if gu == 0.0 and gv == 0.0 and gA == 0.0 and gB == 0.0 and gC == 0.0 and gk == 0.0:
             continue
         st = state[i]
-        w, qx, qy, qz = 1.0, 0.0, 0.0, 0.0
-        if use_covs:
-            _given_cam_cov(covs, Rc, i, Sc, M)
-        else:
-            w, qx, qy, qz, _ = _unit_quat(quats, i)
-            _rotmat(w, qx, qy, qz, R)
-            _cam_cov(R, scales, Rc, i, Sc, M)
-        mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
-        x = Rc[0, 0] * mx + Rc[0, 1] * my + Rc[0, 2] * mz + tc[0]
-        y = Rc[1, 0] * mx + Rc[1, 1] * my + Rc[1, 2] * mz + tc[1]
+        w, qx, qy, qz, _ = _load_cam_cov(use_covs, covs, quats, scales, Rc, i, R, Sc, M)
+        x, y, _ = _centre(means, Rc, tc, i)
         zs = st[_S_ZS]
-        clx = min(max(x / zs, -lxn), lxp)
-        cly = min(max(y / zs, -lyn), lyp)
-        j00, j11 = fx / zs, fy / zs
-        j02, j12 = -fx * clx / zs, -fy * cly / zs
-        a_raw = j00 * j00 * Sc[0, 0] + 2.0 * j00 * j02 * Sc[0, 2] + j02 * j02 * Sc[2, 2]
-        b_raw = j00 * j11 * Sc[0, 1] + j00 * j12 * Sc[0, 2] + j02 * j11 * Sc[2, 1]
-        b_raw += j02 * j12 * Sc[2, 2]
-        c_raw = j11 * j11 * Sc[1, 1] + 2.0 * j11 * j12 * Sc[1, 2] + j12 * j12 * Sc[2, 2]
-        a0 = max(a_raw, 0.0)
-        c0 = max(c_raw, 0.0)
-        lim = math.sqrt(a0 * c0) * (1.0 - 4.0 * params[3])
-        b = min(max(b_raw, -lim), lim)
-        a, c = a0 + eps2d, c0 + eps2d
-        det0 = max(a0 * c0 - b * b, 0.0)
+        clx, cly, j00, j02, j11, j12, a_raw, b_raw, c_raw = _ewa(x, y, zs, fx, fy, lims, Sc)
+        a0, c0, _, b, a, c, _, det0 = _psd_filtered(a_raw, b_raw, c_raw, eps2d, params[3])
         ok = st[_S_OK] > 0.0
         ds = det0 + eps2d * (a0 + c0) + eps2d * eps2d if ok else 1.0
         # conic = (c, -b, a) / ds and comp = sqrt(max(det0 / ds, 1e-12))
