@@ -90,6 +90,7 @@ def run(args: argparse.Namespace) -> dict:
         torch.set_num_threads(args.threads)
     backend = resolve_backend(args.backend, device)
     cfg = TrainConfig(device=args.device, backend=backend)
+    aa = cfg.antialiased  # render the way training does
     cam, cam_nb = bench_camera(args.size), neighbour_camera(bench_camera(args.size))
     gs = make_gaussians(args.n, device)
     env = EnvMap(args.envmap).to(device)
@@ -115,25 +116,25 @@ def run(args: argparse.Namespace) -> dict:
 
     def gbuffer_fwd() -> None:
         with torch.no_grad():
-            render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+            render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
 
     def gbuffer_fwd_bwd() -> None:
-        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
         (gb.base.sum() + gb.normal.sum() + gb.plane_dist.sum() + gb.alpha.sum()).backward()
         adam()
 
     def deferred() -> None:
         with torch.no_grad():
-            gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+            gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
             deferred_shade(gb, env, white)
 
     def full_step() -> None:
-        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend)
+        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
         shade = deferred_shade(gb, env, white)
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
-        gb_n, _ = render_gbuffer(gs, cam_nb, sh_degree=0, backend=backend)
+        gb_n, _ = render_gbuffer(gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa)
         d_n, v_n = geometry_depth(gb_n, True)
         mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, n_pixels=4096)
         (loss + 0.1 * mv).backward()

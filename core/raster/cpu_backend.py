@@ -448,9 +448,6 @@ def kernel_threads() -> int:
     return _KERNEL_THREADS or max(1, torch.get_num_threads())
 
 
-_num_workers = kernel_threads
-
-
 def _np(t: Tensor, dtype: torch.dtype) -> np.ndarray:
     return t.detach().to(dtype).contiguous().numpy()
 
@@ -522,7 +519,7 @@ class CpuComposite(torch.autograd.Function):
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
             setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
             args = (*setup.args(), out_feat, out_T, out_last)
-            _run_workers(_forward_worker, _num_workers(), args)
+            _run_workers(_forward_worker, kernel_threads(), args)
         # The numpy arrays in ``setup`` may alias the inputs: saving the inputs makes
         # autograd refuse a backward after they were modified in place.
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -554,7 +551,7 @@ class CpuComposite(torch.autograd.Function):
                 ga = np.zeros((height, width), out_T.dtype)
             else:
                 ga = _np(grad_alpha, dtype)
-            n_workers = _num_workers()
+            n_workers = kernel_threads()
             gbuf = np.zeros((n_workers, n, 6 + n_ch), np.float64)
             args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
             _run_workers(_backward_worker, n_workers, args)

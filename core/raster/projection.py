@@ -27,7 +27,8 @@ class Projected:
 
     ``means2d`` (N, 2) in pixels (pixel centres at +0.5), ``conics`` (N, 3) the
     inverse 2D covariance as (a, b, c) for [[a, b], [b, c]], ``depths`` (N,) camera
-    z, ``radii`` (N,) int pixel radius (0 = culled), ``cov2d`` (N, 2, 2),
+    z, ``radii`` (N,) int pixel radius (0 = culled), ``cov2d`` (N, 2, 2) the filtered
+    2D covariance (None from the compiled projection: nothing downstream reads it),
     ``compensation`` (N,) the antialiasing opacity factor (see ``project_gaussians``).
     """
 
@@ -35,7 +36,7 @@ class Projected:
     conics: Tensor
     depths: Tensor
     radii: Tensor
-    cov2d: Tensor
+    cov2d: Tensor | None = None
     compensation: Tensor | None = None
 
     @property

@@ -352,9 +352,9 @@ def _chunks(n: int, workers: int) -> list[tuple[int, int]]:
 
 def _run(kernel, n: int, args: tuple) -> None:
     """``kernel(lo, hi, *args)`` over contiguous ranges on the CPU backend's threads."""
-    from core.raster.cpu_backend import _num_workers, _run_workers
+    from core.raster.cpu_backend import _run_workers, kernel_threads
 
-    ranges = _chunks(n, _num_workers())
+    ranges = _chunks(n, kernel_threads())
     if len(ranges) <= 1:
         for lo, hi in ranges:
             kernel(lo, hi, *args)
@@ -454,8 +454,7 @@ def project_fused(
     CPU tensors only. ``covariances`` (N, 3, 3) replace quats/scales; they get no
     gradient, so they must not require one (the viewer's precomputed, frozen model;
     the full-covariance ablation trains through the torch projection instead).
-    ``cov2d`` of the result is rebuilt from the conics without gradient (nothing
-    downstream differentiates it).
+    The result has no ``cov2d`` (the conics carry the footprint; nothing reads it).
     """
     if covariances is not None and covariances.requires_grad:
         raise ValueError("project_fused gives no gradient to covariances; use project_gaussians")
@@ -464,11 +463,4 @@ def project_fused(
     means2d, conics, comp, depths, radii = FusedProjection.apply(
         means, quats, scales, covariances, camera, float(near), float(far), float(eps2d)
     )
-    with torch.no_grad():
-        a, b, c = conics.unbind(-1)
-        det = (a * c - b * b).clamp_min(1e-30)
-        cov2d = torch.stack([c / det, -b / det, -b / det, a / det], dim=-1).reshape(-1, 2, 2)
-    return Projected(
-        means2d=means2d, conics=conics, depths=depths, radii=radii, cov2d=cov2d,
-        compensation=comp,
-    )  # fmt: skip
+    return Projected(means2d=means2d, conics=conics, depths=depths, radii=radii, compensation=comp)
