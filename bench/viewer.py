@@ -34,7 +34,7 @@ from core.checkpoint import save_checkpoint
 from core.config import TrainConfig
 from core.envmap import EnvMap, texel_directions
 from core.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
-from core.raster.cpu_backend import kernel_threads
+from core.kernel_pool import kernel_threads
 from core.sh import rgb_to_sh0
 from core.synthetic import albedo, default_env, surface_points
 from core.threads import configure_cpu_threads

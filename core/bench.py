@@ -126,9 +126,9 @@ def render_speed(
     trainer: Trainer, views: Sequence[View], *, frames: int | None = None, warmup: int = 3
 ) -> dict[str, Any]:
     """FPS of the full deferred renderer (G-buffer + shading) at the test resolution."""
+    from core.kernel_pool import kernel_threads
     from core.metrics import time_renders
     from core.raster import resolve_backend
-    from core.raster.cpu_backend import kernel_threads
     from core.trainer import eval_background, render_view
 
     bg = eval_background(trainer.cfg, trainer.device)

@@ -22,8 +22,8 @@ Handler = Callable[[argparse.Namespace], int]
 def _cmd_info(args: argparse.Namespace) -> int:
     import torch
 
+    from core.kernel_pool import kernel_threads
     from core.raster import BACKENDS
-    from core.raster.cpu_backend import kernel_threads
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     info = {

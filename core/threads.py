@@ -45,7 +45,7 @@ def configure_cpu_threads(kernel_threads: int | None = None) -> int:
     ``GLINT_KERNEL_THREADS``, else every usable CPU). Returns the kernel thread count."""
     import torch
 
-    from core.raster.cpu_backend import set_kernel_threads
+    from core.kernel_pool import set_kernel_threads
 
     n = kernel_threads or kernel_threads_from_env() or usable_cpus()
     torch.set_num_threads(1)

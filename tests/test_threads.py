@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.raster import cpu_backend
+from core import kernel_pool
 from core.threads import ENV_VAR, configure_cpu_threads, kernel_threads_from_env, usable_cpus
 
 
@@ -13,7 +13,7 @@ from core.threads import ENV_VAR, configure_cpu_threads, kernel_threads_from_env
 def restore_threads():
     before = torch.get_num_threads()
     yield
-    cpu_backend.set_kernel_threads(None)
+    kernel_pool.set_kernel_threads(None)
     torch.set_num_threads(before)
 
 
@@ -21,18 +21,18 @@ def test_layout_puts_torch_on_one_thread_and_kernels_on_the_rest(restore_threads
     monkeypatch.delenv(ENV_VAR, raising=False)
     assert configure_cpu_threads() == usable_cpus()
     assert torch.get_num_threads() == 1
-    assert cpu_backend.kernel_threads() == usable_cpus()
-    assert configure_cpu_threads(3) == 3 and cpu_backend.kernel_threads() == 3
+    assert kernel_pool.kernel_threads() == usable_cpus()
+    assert configure_cpu_threads(3) == 3 and kernel_pool.kernel_threads() == 3
     monkeypatch.setenv(ENV_VAR, "2")
     assert configure_cpu_threads() == 2
 
 
 def test_unset_kernel_threads_follow_torch(restore_threads):
-    cpu_backend.set_kernel_threads(None)
+    kernel_pool.set_kernel_threads(None)
     torch.set_num_threads(1)
-    assert cpu_backend.kernel_threads() == 1
+    assert kernel_pool.kernel_threads() == 1
     with pytest.raises(ValueError, match=">= 1"):
-        cpu_backend.set_kernel_threads(0)
+        kernel_pool.set_kernel_threads(0)
 
 
 @pytest.mark.parametrize("raw", ["zero", "0", "-2", "1.5"])
@@ -59,7 +59,7 @@ def test_results_do_not_depend_on_the_kernel_thread_count(restore_threads):
     base = random_gaussians(1500, channels=4)
     out = {}
     for n in (1, 3):
-        cpu_backend.set_kernel_threads(n)
+        kernel_pool.set_kernel_threads(n)
         params = [t.clone().requires_grad_(True) for t in base]
         r = rasterize(*params, cam, backend="cpu", antialiased=True)
         (r.features.sum() + r.alpha.sum()).backward()

@@ -43,15 +43,12 @@ so later processes only load it (about 0.5 s).
 from __future__ import annotations
 
 import math
-import os
-import threading
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from core.kernel_pool import kernel_threads, run_workers, set_kernel_threads
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
 
@@ -402,52 +399,6 @@ def _backward_worker(
 # ---------------------------------------------------------------------------------------
 
 
-_POOL: ThreadPoolExecutor | None = None
-_POOL_KEY: tuple[int, int] = (0, 0)  # (pid, size): a forked child builds its own pool
-_POOL_LOCK = threading.Lock()
-
-
-def _run_workers(kernel: Callable[..., None], n_workers: int, args: tuple) -> None:
-    """Run ``kernel(w, n_workers, *args)`` for w in 0..n_workers-1, concurrently.
-
-    The kernels are compiled with ``nogil=True`` and run on plain threads: worker 0
-    on the calling thread, the others on a small persistent pool. (A numba
-    ``prange`` wrapper does the same job but added 2-7 s of compile time per kernel
-    and dtype, and brings a second OpenMP thread pool next to torch's.)
-    """
-    global _POOL, _POOL_KEY
-    if n_workers == 1:
-        kernel(0, 1, *args)
-        return
-    with _POOL_LOCK:
-        pid = os.getpid()
-        if _POOL is None or _POOL_KEY[0] != pid or _POOL_KEY[1] < n_workers - 1:
-            if _POOL is not None and _POOL_KEY[0] == pid:
-                _POOL.shutdown(wait=False)
-            _POOL = ThreadPoolExecutor(n_workers - 1, thread_name_prefix="glint-raster")
-            _POOL_KEY = (pid, n_workers - 1)
-        futures = [_POOL.submit(kernel, w, n_workers, *args) for w in range(1, n_workers)]
-    kernel(0, n_workers, *args)
-    for f in futures:
-        f.result()
-
-
-_KERNEL_THREADS: int | None = None
-
-
-def set_kernel_threads(n: int | None) -> None:
-    """Threads for the compiled kernels; None: follow ``torch.get_num_threads()``."""
-    global _KERNEL_THREADS
-    if n is not None and n < 1:
-        raise ValueError(f"kernel threads must be >= 1, got {n}")
-    _KERNEL_THREADS = n
-
-
-def kernel_threads() -> int:
-    """The configured kernel thread count (core.threads), else torch's intra-op count."""
-    return _KERNEL_THREADS or max(1, torch.get_num_threads())
-
-
 def _np(t: Tensor, dtype: torch.dtype) -> np.ndarray:
     return t.detach().to(dtype).contiguous().numpy()
 
@@ -519,7 +470,7 @@ class CpuComposite(torch.autograd.Function):
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
             setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
             args = (*setup.args(), out_feat, out_T, out_last)
-            _run_workers(_forward_worker, kernel_threads(), args)
+            run_workers(_forward_worker, kernel_threads(), args)
         # The numpy arrays in ``setup`` may alias the inputs: saving the inputs makes
         # autograd refuse a backward after they were modified in place.
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -554,7 +505,7 @@ class CpuComposite(torch.autograd.Function):
             n_workers = kernel_threads()
             gbuf = np.zeros((n_workers, n, 6 + n_ch), np.float64)
             args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
-            _run_workers(_backward_worker, n_workers, args)
+            run_workers(_backward_worker, n_workers, args)
             total = gbuf.sum(axis=0)
         tot = torch.from_numpy(total)
         grads = (

@@ -29,6 +29,7 @@ from numba import njit
 from torch import Tensor
 
 from core.cameras import Camera
+from core.kernel_pool import run_ranges
 from core.raster.projection import Projected
 
 # Columns of the per-Gaussian state the backward reads back (float64).
@@ -345,28 +346,6 @@ def _camera_arrays(
     return Rc, tc, k, lims, params
 
 
-def _chunks(n: int, workers: int) -> list[tuple[int, int]]:
-    step = -(-n // workers)
-    return [(lo, min(lo + step, n)) for lo in range(0, n, step)] if n else []
-
-
-def _run(kernel, n: int, args: tuple) -> None:
-    """``kernel(lo, hi, *args)`` over contiguous ranges on the CPU backend's threads."""
-    from core.raster.cpu_backend import _run_workers, kernel_threads
-
-    ranges = _chunks(n, kernel_threads())
-    if len(ranges) <= 1:
-        for lo, hi in ranges:
-            kernel(lo, hi, *args)
-        return
-
-    def by_worker(w: int, n_workers: int, *a) -> None:
-        for lo, hi in ranges[w::n_workers]:
-            kernel(lo, hi, *a)
-
-    _run_workers(by_worker, len(ranges), args)
-
-
 class FusedProjection(torch.autograd.Function):
     """(means, quats, scales | covs) → (means2d, conics, compensation); depths and radii
     ride along. Given covariances get no gradient (callers check)."""
@@ -392,7 +371,7 @@ class FusedProjection(torch.autograd.Function):
         comp = np.empty(n, np.float64)
         state = np.empty((n, _N_STATE), np.float64)
         args = (m, q, s, c, *cam, means2d, conics, depths, radii, comp, state)
-        _run(_forward_range, n, args)
+        run_ranges(_forward_range, n, args)
         # The numpy views alias the inputs: saving them makes autograd refuse a backward
         # after an in-place change instead of silently using the new values.
         ctx.save_for_backward(means, quats, scales, covs)
@@ -423,7 +402,7 @@ class FusedProjection(torch.autograd.Function):
             m, q, s, c, *cam, conics, comp, state,
             arr(g_m2d, (n, 2)), arr(g_con, (n, 3)), arr(g_comp, (n,)), gm, gq, gs,
         )  # fmt: skip
-        _run(_backward_range, n, args)
+        run_ranges(_backward_range, n, args)
         need = ctx.needs_input_grad
         d_means, d_quats, d_scales = ctx.dtypes
         return (
