@@ -23,6 +23,7 @@ from torch import Tensor
 
 from core.envmap import EnvMap
 from core.gbuffer import GBuffer
+from core.shading_cpu import can_shade_compiled, shade_compiled
 
 
 @dataclass
@@ -72,11 +73,16 @@ def deferred_shade(
     envmap: EnvMap | None,
     background: Tensor,
     enabled: bool = True,
+    *,
+    compiled: bool = True,
 ) -> ShadeResult:
     """Eq. 9 for one view; see the module docstring for how coverage is composited.
 
     ``enabled=False`` is the "no deferred shading" ablation: the image is the SH/base
     colour over the background, and ``envmap`` is neither read nor required (may be None).
+    On the CPU, when no gradient is wanted (viewer frames, evaluation renders), the
+    compiled kernel of ``core.shading_cpu`` shades the frame in one pass; ``compiled=False``
+    keeps the PyTorch path, the reference it is tested against.
     """
     base, alpha, w_r = gbuffer.base, gbuffer.alpha, gbuffer.w_r
     h, w = base.shape[:2]
@@ -93,6 +99,10 @@ def deferred_shade(
     if envmap is None:
         raise ValueError("deferred shading is enabled but no environment map was given")
 
+    tensors = (base, gbuffer.normal, w_r, alpha)
+    if compiled and can_shade_compiled(tensors, envmap):
+        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap)
+        return ShadeResult(final, base, specular, w_r, refl)
     _, view = cam.world_rays(dtype=base.dtype, device=base.device)
     refl = reflect(view, world_normals(gbuffer))
     specular = w_r.unsqueeze(-1) * envmap.sample(refl)
