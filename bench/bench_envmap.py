@@ -11,6 +11,7 @@ modes. Median of ``--repeat`` runs after a warm-up; torch's default thread count
 from __future__ import annotations
 
 import argparse
+import dataclasses
 
 import torch
 
@@ -41,9 +42,6 @@ def sphere_gbuffer(size: int, device: str) -> GBuffer:
         plane_dist=z,
         w_r=0.8 * alpha,
         alpha=alpha,
-        depth=z,
-        depth_valid=hit.to(device),
-        center_depth=z,
         camera=cam,
     )
 
@@ -90,7 +88,7 @@ def main() -> None:
         def shade_bwd(gb=gb):
             normal = gb.normal.clone().requires_grad_(True)
             w_r = gb.w_r.clone().requires_grad_(True)
-            g = GBuffer(**{**gb.__dict__, "normal": normal, "w_r": w_r})
+            g = dataclasses.replace(gb, normal=normal, w_r=w_r)
             env.zero_grad(set_to_none=True)
             deferred_shade(g, env, bg).final.sum().backward()
 

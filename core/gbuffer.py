@@ -4,6 +4,7 @@ geometric losses need (paper Sect. 4.1, Eq. 5, 6, 8)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import torch
@@ -16,33 +17,6 @@ if TYPE_CHECKING:
     from core.gaussians import Gaussians
 
 
-@dataclass
-class GBuffer:
-    """Per-pixel buffers of one view; all (H, W[, C]) float tensors on one device.
-
-    - ``base``: blended base colour (SH evaluated for this view), (H, W, 3).
-    - ``normal``: blended camera-space normal (OpenCV axes, not normalised), (H, W, 3).
-    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W).
-    - ``w_r``: blended reflection strength in [0, 1], (H, W).
-    - ``alpha``: accumulated opacity, (H, W).
-    - ``depth``: planar z-depth d = D / (N·r̃) (Eq. 8), 0 where invalid, (H, W).
-    - ``depth_valid``: bool (H, W), False where alpha or |N·r̃| is too small.
-    - ``center_depth``: conventional blended centre depth (Eq. 5) divided by alpha
-      where alpha is large enough, 0 elsewhere, (H, W).
-    - ``camera``: the view these buffers belong to.
-    """
-
-    base: Tensor
-    normal: Tensor
-    plane_dist: Tensor
-    w_r: Tensor
-    alpha: Tensor
-    depth: Tensor
-    depth_valid: Tensor
-    center_depth: Tensor
-    camera: Camera
-
-
 # Pixels whose accumulated opacity is below this have no depth (Eq. 5 and Eq. 8).
 MIN_ALPHA = 0.05
 # Pixels whose blended normal is this close to perpendicular to the ray (|cos| below,
@@ -53,6 +27,66 @@ MIN_COS = 0.05
 # unit: at the rasteriser's 0.01 a scene in millimetres (object ~3e-3 away) was
 # culled entirely. Relative to the view's own depth scale it is unit-free.
 NEAR_FRACTION = 1e-3
+
+
+@dataclass
+class GBuffer:
+    """Per-pixel buffers of one view; all (H, W[, C]) float tensors on one device.
+
+    - ``base``: blended base colour (SH evaluated for this view), (H, W, 3).
+    - ``normal``: blended camera-space normal (OpenCV axes, not normalised), (H, W, 3).
+    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W).
+    - ``w_r``: blended reflection strength in [0, 1], (H, W).
+    - ``alpha``: accumulated opacity, (H, W).
+    - ``camera``: the view these buffers belong to.
+    - ``z_blend``: blended centre z Σ z_i α_i T_i (premultiplied), (H, W); None when
+      the buffers were not splatted (then ``center_depth`` is unavailable).
+
+    Derived on first use and then kept (a viewer frame of the final colour never pays
+    for depth):
+
+    - ``depth``: planar z-depth d = D / (N·r̃) (Eq. 8), 0 where invalid, (H, W).
+    - ``depth_valid``: bool (H, W), False where alpha or |N·r̃| is too small.
+    - ``center_depth``: conventional blended centre depth (Eq. 5) divided by alpha
+      where alpha is large enough, 0 elsewhere, (H, W).
+    """
+
+    base: Tensor
+    normal: Tensor
+    plane_dist: Tensor
+    w_r: Tensor
+    alpha: Tensor
+    camera: Camera
+    z_blend: Tensor | None = None
+    min_alpha: float = MIN_ALPHA
+    min_cos: float = MIN_COS
+
+    @cached_property
+    def _planar(self) -> tuple[Tensor, Tensor]:
+        return planar_depth(
+            self.normal,
+            self.plane_dist,
+            self.alpha,
+            self.camera,
+            min_alpha=self.min_alpha,
+            min_cos=self.min_cos,
+        )
+
+    @property
+    def depth(self) -> Tensor:
+        return self._planar[0]
+
+    @property
+    def depth_valid(self) -> Tensor:
+        return self._planar[1]
+
+    @cached_property
+    def center_depth(self) -> Tensor:
+        if self.z_blend is None:
+            raise ValueError("this G-buffer has no blended centre z (it was not splatted)")
+        covered = self.alpha > self.min_alpha
+        return torch.where(covered, self.z_blend / torch.where(covered, self.alpha, 1.0), 0.0)
+
 
 _C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
 
@@ -160,22 +194,17 @@ def render_gbuffer_tensors(
         absgrad=absgrad,
         antialiased=antialiased,
     )
-    f, alpha = res.features, res.alpha
-    normal = f[..., _C_NORMAL]
-    plane = f[..., _C_PLANE]
-    depth, valid = planar_depth(normal, plane, alpha, camera, min_alpha=min_alpha, min_cos=min_cos)
-    covered = alpha > min_alpha
-    center = torch.where(covered, f[..., _C_Z] / torch.where(covered, alpha, 1.0), 0.0)
+    f = res.features
     gb = GBuffer(
         base=f[..., _C_BASE],
-        normal=normal,
-        plane_dist=plane,
+        normal=f[..., _C_NORMAL],
+        plane_dist=f[..., _C_PLANE],
         w_r=f[..., _C_WR],
-        alpha=alpha,
-        depth=depth,
-        depth_valid=valid,
-        center_depth=center,
+        alpha=res.alpha,
         camera=camera,
+        z_blend=f[..., _C_Z],
+        min_alpha=min_alpha,
+        min_cos=min_cos,
     )
     return gb, res
 

@@ -40,9 +40,6 @@ def make_gbuffer(cam: Camera, normal, alpha, base=None, w_r=None) -> GBuffer:
         plane_dist=z,
         w_r=alpha.clone() if w_r is None else w_r,
         alpha=alpha,
-        depth=z,
-        depth_valid=alpha > 0,
-        center_depth=z,
         camera=cam,
     )
 

@@ -46,9 +46,6 @@ def _gbuffer(cam: Camera, dtype: torch.dtype, seed: int) -> GBuffer:
         plane_dist=z,
         w_r=torch.rand(h, w, generator=g, dtype=dtype) * alpha,
         alpha=alpha,
-        depth=z,
-        depth_valid=alpha > 0,
-        center_depth=z,
         camera=cam,
     )
 

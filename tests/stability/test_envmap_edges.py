@@ -122,9 +122,6 @@ def _gbuffer(cam: Camera, normal: torch.Tensor, alpha: float = 1.0, w_r: float =
         plane_dist=z,
         w_r=torch.full((h, w), w_r),
         alpha=torch.full((h, w), alpha),
-        depth=z,
-        depth_valid=torch.zeros(h, w, dtype=torch.bool),
-        center_depth=z,
         camera=cam,
     )
 
