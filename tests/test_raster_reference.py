@@ -164,3 +164,23 @@ def test_compiled_binning_equals_torch_binning(size, n):
     b = bin_gaussians(p.means2d, p.depths, p.radii, size, size)
     assert torch.equal(a.gauss_ids, b.gauss_ids) and torch.equal(a.offsets, b.offsets)
     assert a.gauss_ids.numel() > n  # Gaussians spanning several tiles are listed in each
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("negative", [False, True])
+def test_compiled_binning_sorts_ties_and_any_depths_like_torch(dtype, negative):
+    """Radix depth order (positive depths) and its general fallback: equal depths keep
+    index order, Gaussians off-screen or with radius 0 are left out, as in torch."""
+    from core.raster.binning import bin_gaussians_torch
+
+    g = torch.Generator().manual_seed(5)
+    n, size = 2000, 70
+    means2d = (torch.rand(n, 2, generator=g, dtype=dtype) * 1.4 - 0.2) * size
+    radii = torch.randint(0, 30, (n,), generator=g)
+    depths = torch.randint(1, 50, (n,), generator=g).to(dtype) * 0.37  # many exact ties
+    depths[:5] = torch.tensor([1e-30, 3e38, 2.0, 2.0, 1e-45]).to(dtype)
+    if negative:
+        depths[10:20] = -depths[10:20]
+    a = bin_gaussians_torch(means2d, depths, radii, size, size)
+    b = bin_gaussians(means2d, depths, radii, size, size)
+    assert torch.equal(a.gauss_ids, b.gauss_ids) and torch.equal(a.offsets, b.offsets)
