@@ -11,6 +11,7 @@ import torch
 from torch import Tensor
 
 from core.cameras import Camera
+from core.gbuffer_cpu import can_build_compiled, features_compiled
 from core.raster import RasterResult, rasterize
 
 if TYPE_CHECKING:
@@ -101,6 +102,29 @@ def facing_normals_camera(normals_world: Tensor, means: Tensor, camera: Camera) 
     return n_cam * sign
 
 
+def gbuffer_features(
+    means: Tensor,
+    colors: Tensor,
+    normals_world: Tensor,
+    w_r: Tensor,
+    camera: Camera,
+    *,
+    compiled: bool = True,
+) -> Tensor:
+    """(N, 9) channels each Gaussian splats: base (3), facing camera normal (3), D, w_r, z.
+
+    Gradient-free CPU calls (viewer frames, evaluation renders) take the compiled
+    kernel of ``core.gbuffer_cpu``; ``compiled=False`` keeps this PyTorch path, the
+    reference it is tested against.
+    """
+    if compiled and can_build_compiled(means, colors, normals_world, w_r):
+        return features_compiled(means, colors, normals_world, w_r, camera)
+    n_cam = facing_normals_camera(normals_world, means, camera)
+    mu_cam = means @ camera.R.to(means).T + camera.t.to(means)
+    D = (n_cam * mu_cam).sum(-1, keepdim=True)
+    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+
+
 def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
     """Scale-free near plane: ``fraction`` × the median of the positive camera depths.
 
@@ -173,14 +197,9 @@ def render_gbuffer_tensors(
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
     millimetres, metres or kilometres renders the same images.
     """
-    n_cam = facing_normals_camera(normals_world, means, camera)
-    R = camera.R.to(means)
-    t = camera.t.to(means)
-    mu_cam = means @ R.T + t
-    D = (n_cam * mu_cam).sum(-1, keepdim=True)
-    feats = torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+    feats = gbuffer_features(means, colors, normals_world, w_r, camera)
     if near is None:
-        near = near_plane(mu_cam[:, 2])
+        near = near_plane(feats[:, _C_Z])
     res = rasterize(
         means,
         quats,

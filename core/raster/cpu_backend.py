@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.kernel_pool import kernel_threads, run_workers, set_kernel_threads
+from core.kernel_pool import kernel_threads, run_ranges, run_workers, set_kernel_threads
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
 
@@ -97,6 +97,41 @@ def available(device: torch.device) -> str | None:
 _GEO_HX, _GEO_HY, _GEO_SLOPE, _GEO_U, _GEO_V = range(5)
 
 
+@njit(nogil=True, fastmath=False, cache=True)
+def _prepare_range(
+    lo, hi, means2d, conics, opac, alpha_min, margin, rel_margin, mode, geo
+):  # pragma: no cover - numba
+    """Fill ``mode`` and ``geo`` for Gaussians [lo, hi) (see :func:`_prepare`)."""
+    for g in range(lo, hi):
+        o = np.float64(opac[g])
+        mx, my = np.float64(means2d[g, 0]), np.float64(means2d[g, 1])
+        a, b, c = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+        det = a * c - b * b
+        finite_c = math.isfinite(a) and math.isfinite(b) and math.isfinite(c)
+        pd = finite_c and a > 0 and c > 0 and det > 0
+        # NaN opacity or a non-finite centre never passes the reference's tests; an
+        # infinite opacity does (alpha clamps to 0.99), so it is evaluated without culling.
+        live = o >= alpha_min and math.isfinite(mx) and math.isfinite(my)
+        if not live:
+            mode[g] = 0
+        elif pd and math.isfinite(o):
+            mode[g] = 1
+        else:
+            mode[g] = 2
+        if mode[g] != 1:
+            a, b, c, det, o = 1.0, 0.0, 1.0, 1.0, 1.0
+        k0 = -2.0 * math.log(alpha_min / o)
+        hx0 = math.sqrt(k0 * c / det)
+        hy0 = math.sqrt(k0 * a / det)
+        mag = a * hx0 * hx0 + c * hy0 * hy0 + 2.0 * abs(b) * hx0 * hy0
+        k = k0 + margin + rel_margin * mag
+        geo[g, 0] = math.sqrt(k * c / det)
+        geo[g, 1] = math.sqrt(k * a / det)
+        geo[g, 2] = b / a
+        geo[g, 3] = k / a
+        geo[g, 4] = det / (a * a)
+
+
 def _prepare(
     means2d: np.ndarray, conics: np.ndarray, opac: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -106,39 +141,14 @@ def _prepare(
     mode 1: positive-definite conic, culled with the ellipse
             a dx² + 2b dx dy + c dy² ≤ K, K = -2 log(ALPHA_MIN / o) + margins;
     mode 2: anything else: every pixel of its tiles is evaluated (exact, no culling).
+    ``geo`` holds the mode-1 ellipse (float64); other modes get a unit placeholder.
     """
-    o = opac.astype(np.float64)
-    m = means2d.astype(np.float64)
-    a, b, c = (conics[:, i].astype(np.float64) for i in range(3))
-    with np.errstate(all="ignore"):
-        det = a * c - b * b
-        finite_c = np.isfinite(a) & np.isfinite(b) & np.isfinite(c)
-        pd = finite_c & (a > 0) & (c > 0) & (det > 0)
-        # NaN opacity or a non-finite centre never passes the reference's tests; an
-        # infinite opacity does (alpha clamps to 0.99), so it is evaluated without culling.
-        live = (o >= ALPHA_MIN) & np.isfinite(m).all(axis=1)
-        mode = np.where(live, np.where(pd & np.isfinite(o), 1, 2), 0).astype(np.int8)
-        safe = mode == 1
-        a_s = np.where(safe, a, 1.0)
-        c_s = np.where(safe, c, 1.0)
-        b_s = np.where(safe, b, 0.0)
-        det_s = np.where(safe, det, 1.0)
-        k0 = -2.0 * np.log(ALPHA_MIN / np.where(safe, o, 1.0))
-        hx0 = np.sqrt(k0 * c_s / det_s)
-        hy0 = np.sqrt(k0 * a_s / det_s)
-        mag = a_s * hx0 * hx0 + c_s * hy0 * hy0 + 2.0 * np.abs(b_s) * hx0 * hy0
-        k = k0 + _MARGIN + _REL_MARGIN * mag
-        geo = np.stack(
-            [
-                np.sqrt(k * c_s / det_s),
-                np.sqrt(k * a_s / det_s),
-                b_s / a_s,
-                k / a_s,
-                det_s / (a_s * a_s),
-            ],
-            axis=1,
-        )
-    return mode, np.ascontiguousarray(geo)
+    n = opac.shape[0]
+    mode = np.empty(n, np.int8)
+    geo = np.empty((n, 5), np.float64)
+    args = (means2d, conics, opac, ALPHA_MIN, _MARGIN, _REL_MARGIN, mode, geo)
+    run_ranges(_prepare_range, n, args)
+    return mode, geo
 
 
 # ---------------------------------------------------------------------------------------
