@@ -167,11 +167,15 @@ def test_compiled_binning_equals_torch_binning(size, n):
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-@pytest.mark.parametrize("negative", [False, True])
-def test_compiled_binning_sorts_ties_and_any_depths_like_torch(dtype, negative):
+@pytest.mark.parametrize(("negative", "threads"), [(False, 1), (True, 1), (False, 3)])
+def test_compiled_binning_sorts_ties_and_any_depths_like_torch(dtype, negative, threads):
     """Radix depth order (positive depths) and its general fallback: equal depths keep
-    index order, Gaussians off-screen or with radius 0 are left out, as in torch."""
+    index order, Gaussians off-screen or with radius 0 are left out, as in torch; tile
+    rows split over several workers give the same lists."""
+    from core.kernel_pool import set_kernel_threads
     from core.raster.binning import bin_gaussians_torch
+
+    set_kernel_threads(threads)  # reset after each test (conftest)
 
     g = torch.Generator().manual_seed(5)
     n, size = 2000, 70

@@ -15,6 +15,8 @@ import torch
 from numba import njit
 from torch import Tensor
 
+from core.kernel_pool import kernel_threads, run_ranges, run_workers
+
 
 @dataclass
 class TileBins:
@@ -88,42 +90,54 @@ def _radix_order(keys, idx, n_bits):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True)
-def _counting_bin(order, means2d, radii, tile_size, tiles_x, tiles_y):  # pragma: no cover
-    """Per-tile lists from the visible Gaussians in depth order: count, then place.
-
-    Tile bounds are :func:`tile_ranges`' (same float64 arithmetic), gathered once into
-    depth order so both passes read memory sequentially. Placing in global depth order
-    keeps each tile's list sorted without any sort.
-    """
-    n = order.shape[0]
-    n_tiles = tiles_x * tiles_y
-    box = np.empty((n, 4), np.int64)
-    counts = np.zeros(n_tiles + 1, np.int64)
-    for k in range(n):
+def _boxes_range(
+    lo, hi, order, means2d, radii, tile_size, tiles_x, tiles_y, box
+):  # pragma: no cover
+    """Tile bounds (x0, x1, y0, y1) of the Gaussians order[lo:hi], as :func:`tile_ranges`."""
+    for k in range(lo, hi):
         g = order[k]
         mx = np.float64(means2d[g, 0])
         my = np.float64(means2d[g, 1])
         r = np.float64(radii[g])
-        tx0 = min(max(math.floor((mx - r) / tile_size), 0.0), tiles_x - 1.0)
-        tx1 = min(max(math.floor((mx + r) / tile_size), 0.0), tiles_x - 1.0)
-        ty0 = min(max(math.floor((my - r) / tile_size), 0.0), tiles_y - 1.0)
-        ty1 = min(max(math.floor((my + r) / tile_size), 0.0), tiles_y - 1.0)
-        box[k, 0], box[k, 1], box[k, 2], box[k, 3] = int(tx0), int(tx1), int(ty0), int(ty1)
+        box[k, 0] = int(min(max(math.floor((mx - r) / tile_size), 0.0), tiles_x - 1.0))
+        box[k, 1] = int(min(max(math.floor((mx + r) / tile_size), 0.0), tiles_x - 1.0))
+        box[k, 2] = int(min(max(math.floor((my - r) / tile_size), 0.0), tiles_y - 1.0))
+        box[k, 3] = int(min(max(math.floor((my + r) / tile_size), 0.0), tiles_y - 1.0))
+
+
+@njit(cache=True, nogil=True)
+def _place_band(w, n_workers, order, box, tiles_x, tiles_y, fill, ids):  # pragma: no cover
+    """Worker w places the tiles of its band of tile rows, Gaussians in depth order.
+
+    Bands split the rows, not the Gaussians, so each tile's list is written by one
+    worker in global depth order: sorted without any sort, and race-free.
+    """
+    ty_lo = tiles_y * w // n_workers
+    ty_hi = tiles_y * (w + 1) // n_workers
+    for k in range(order.shape[0]):
+        y0 = max(box[k, 2], ty_lo)
+        y1 = min(box[k, 3], ty_hi - 1)
+        if y0 > y1:
+            continue
+        g = order[k]
+        for ty in range(y0, y1 + 1):
+            for tx in range(box[k, 0], box[k, 1] + 1):
+                t = ty * tiles_x + tx
+                ids[fill[t]] = g
+                fill[t] += 1
+
+
+@njit(cache=True, nogil=True)
+def _tile_offsets(box, tiles_x, n_tiles):  # pragma: no cover
+    """Start of each tile's list (n_tiles + 1 entries; the last is the total)."""
+    counts = np.zeros(n_tiles + 1, np.int64)
+    for k in range(box.shape[0]):
         for ty in range(box[k, 2], box[k, 3] + 1):
             for tx in range(box[k, 0], box[k, 1] + 1):
                 counts[ty * tiles_x + tx + 1] += 1
     for t in range(n_tiles):
         counts[t + 1] += counts[t]
-    fill = counts[:-1].copy()
-    ids = np.empty(counts[n_tiles], np.int64)
-    for k in range(n):
-        g = order[k]
-        for ty in range(box[k, 2], box[k, 3] + 1):
-            for tx in range(box[k, 0], box[k, 1] + 1):
-                t = ty * tiles_x + tx
-                ids[fill[t]] = g
-                fill[t] += 1
-    return ids, counts
+    return counts
 
 
 def depth_order(depths: Tensor, visible: Tensor) -> np.ndarray:
@@ -146,7 +160,13 @@ def _bin_gaussians_cpu(
     order = depth_order(depths, radii > 0)
     m = means2d.detach().contiguous().numpy()
     r = radii.detach().contiguous().numpy()
-    ids, offsets = _counting_bin(order, m, r, tile_size, tiles_x, tiles_y)
+    box = np.empty((order.shape[0], 4), np.int64)
+    run_ranges(_boxes_range, order.shape[0], (order, m, r, tile_size, tiles_x, tiles_y, box))
+    offsets = _tile_offsets(box, tiles_x, tiles_x * tiles_y)
+    ids = np.empty(offsets[-1], np.int64)
+    fill = offsets[:-1].copy()
+    n_workers = min(kernel_threads(), tiles_y)
+    run_workers(_place_band, n_workers, (order, box, tiles_x, tiles_y, fill, ids))
     return TileBins(torch.from_numpy(ids), torch.from_numpy(offsets), tiles_x, tiles_y, tile_size)
 
 
