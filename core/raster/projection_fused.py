@@ -178,17 +178,16 @@ def _forward_range(
                 r = 0
         radii[i] = r
         comp[i] = math.sqrt(max(det0 / ds, 1e-12))
-        st = state[i]
-        st[_S_QN] = qn
-        st[_S_ZS] = zs
-        st[_S_IND] = 1.0 if in_depth else 0.0
-        st[_S_CLX] = 1.0 if (-lxn <= rx <= lxp) else 0.0
-        st[_S_CLY] = 1.0 if (-lyn <= ry <= lyp) else 0.0
-        st[_S_A0P] = 1.0 if a_raw >= 0.0 else 0.0
-        st[_S_C0P] = 1.0 if c_raw >= 0.0 else 0.0
-        st[_S_BP] = 1.0 if (-lim <= b_raw <= lim) else 0.0
-        st[_S_D0P] = 1.0 if d0_raw >= 0.0 else 0.0
-        st[_S_OK] = 1.0 if ok else 0.0
+        state[i, _S_QN] = qn
+        state[i, _S_ZS] = zs
+        state[i, _S_IND] = 1.0 if in_depth else 0.0
+        state[i, _S_CLX] = 1.0 if (-lxn <= rx <= lxp) else 0.0
+        state[i, _S_CLY] = 1.0 if (-lyn <= ry <= lyp) else 0.0
+        state[i, _S_A0P] = 1.0 if a_raw >= 0.0 else 0.0
+        state[i, _S_C0P] = 1.0 if c_raw >= 0.0 else 0.0
+        state[i, _S_BP] = 1.0 if (-lim <= b_raw <= lim) else 0.0
+        state[i, _S_D0P] = 1.0 if d0_raw >= 0.0 else 0.0
+        state[i, _S_OK] = 1.0 if ok else 0.0
 
 
 @njit(cache=True, nogil=True, fastmath=False)
