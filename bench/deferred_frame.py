@@ -1,0 +1,163 @@
+"""One deferred frame on the CPU, stage by stage: the viewer's case of issue 5.
+
+    python -m bench.deferred_frame [--gaussians 100000] [--size 512] [--threads 2]
+
+A viewer frame is the G-buffer pass (per-Gaussian channels, projection, binning,
+compositing) followed by deferred shading (Eq. 9). Both scenes of the rasteriser
+benchmarks are timed: the viewer benchmark's glossy sphere of flat discs with an env
+map, and bench.raster's random blob (shaded with a constant grey env map). The
+compiled shading and the PyTorch shading it replaces run side by side in the same
+process, so the ratio between them is the figure to trust on a noisy machine. Prints
+a Markdown table and one JSON line per scene; peak RSS is the process's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import time
+from collections.abc import Callable
+
+import torch
+
+from bench.common import bench_camera, machine_line, peak_rss_mib, random_gaussians
+from bench.viewer import sphere_model
+from core.cameras import Camera, Intrinsics
+from core.envmap import EnvMap, texel_directions
+from core.gbuffer import gbuffer_features, near_plane, render_gbuffer_tensors
+from core.kernel_pool import kernel_threads
+from core.raster import PROJECTORS, bin_gaussians
+from core.raster.cpu_backend import rasterize_cpu
+from core.shading import deferred_shade
+from core.synthetic import default_env
+from core.threads import configure_cpu_threads
+
+
+def _times(fn: Callable[[], object], repeat: int) -> float:
+    """Median ms over ``repeat`` runs after one warm-up."""
+    fn()
+    out = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        out.append((time.perf_counter() - t0) * 1000.0)
+    return statistics.median(out)
+
+
+def _sphere_scene(n: int, size: int) -> dict:
+    g = sphere_model(n)
+    env = EnvMap(64)
+    env.set_texels(default_env(texel_directions(64)))
+    fy = 0.5 * size / math.tan(math.radians(50.0) / 2)
+    intr = Intrinsics(fy, fy, size / 2, size / 2, size, size)
+    cam = Camera.look_at([0, 0.4, 2.0], [0, 0, 0], [0, 1, 0], intr)
+    return {
+        "means": g.params["means"],
+        "covariances": g.covariances.detach(),
+        "opacities": g.opacities.detach(),
+        "colors": g.colors(cam, 0).detach(),
+        "normals": g.normals().detach(),
+        "w_r": g.w_r.detach(),
+        "camera": cam,
+        "env": env.requires_grad_(False),
+    }
+
+
+def _blob_scene(n: int, size: int) -> dict:
+    from core.raster import covariances_from
+
+    means, quats, scales, opac, feats = random_gaussians(n, channels=8)
+    env = EnvMap(64, init_value=0.5).requires_grad_(False)
+    return {
+        "means": means,
+        "covariances": covariances_from(quats, scales),
+        "opacities": opac,
+        "colors": feats[:, :3].contiguous(),
+        "normals": torch.nn.functional.normalize(feats[:, 3:6] - 0.5, dim=-1),
+        "w_r": feats[:, 6].contiguous(),
+        "camera": bench_camera(size),
+        "env": env,
+    }
+
+
+def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
+    cam, env = s["camera"], s["env"]
+    bg = torch.ones(3)
+    with torch.no_grad():
+
+        def gbuf():
+            return render_gbuffer_tensors(
+                s["means"], None, None, s["opacities"], s["colors"], s["normals"], s["w_r"],
+                cam, covariances=s["covariances"], backend="cpu", antialiased=True,
+            )[0]  # fmt: skip
+
+        feats = gbuffer_features(s["means"], s["colors"], s["normals"], s["w_r"], cam)
+        near = near_plane(feats[:, 8])
+        project = PROJECTORS["cpu"]
+        covs = s["covariances"]
+
+        def proj_fn():
+            return project(s["means"], None, None, cam, covariances=covs, near=near)
+
+        proj = proj_fn()
+        bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size)
+        opac = s["opacities"] * proj.compensation
+        gb = gbuf()
+        row = {
+            "scene": name,
+            "gaussians": int(s["means"].shape[0]),
+            "size": size,
+            "tile_pairs": int(bins.gauss_ids.numel()),
+            "coverage": round(float(gb.alpha.mean()), 3),
+            "features_ms": _times(
+                lambda: gbuffer_features(s["means"], s["colors"], s["normals"], s["w_r"], cam),
+                repeat,
+            ),
+            "projection_ms": _times(proj_fn, repeat),
+            "binning_ms": _times(
+                lambda: bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size), repeat
+            ),
+            "compositing_ms": _times(
+                lambda: rasterize_cpu(proj, opac, feats, bins, size, size), repeat
+            ),
+            "gbuffer_ms": _times(gbuf, repeat),
+            "shade_compiled_ms": _times(lambda: deferred_shade(gb, env, bg), repeat),
+            "shade_pytorch_ms": _times(lambda: deferred_shade(gb, env, bg, compiled=False), repeat),
+        }
+        row["frame_ms"] = _times(lambda: deferred_shade(gbuf(), env, bg), repeat)
+    row["fps"] = round(1000.0 / row["frame_ms"], 2)
+    row["shade_speedup"] = round(row["shade_pytorch_ms"] / row["shade_compiled_ms"], 1)
+    row["peak_rss_mib"] = round(peak_rss_mib(), 1)
+    return {k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--gaussians", type=int, default=100_000)
+    ap.add_argument("--size", type=int, default=512)
+    ap.add_argument("--threads", type=int, default=None, help="kernel threads (default: all)")
+    ap.add_argument("--repeat", type=int, default=9)
+    args = ap.parse_args(argv)
+    configure_cpu_threads(args.threads)
+    n, size, rep = args.gaussians, args.size, args.repeat
+    rows = [
+        bench_scene("sphere (viewer)", _sphere_scene(n, size), size, rep),
+        bench_scene("random blob", _blob_scene(n, size), size, rep),
+    ]
+    print(f"{machine_line()}, {kernel_threads()} kernel threads; medians of {args.repeat}\n")
+    cols = [
+        "scene", "tile_pairs", "features_ms", "projection_ms", "binning_ms", "compositing_ms",
+        "gbuffer_ms", "shade_compiled_ms", "shade_pytorch_ms", "frame_ms", "fps", "peak_rss_mib",
+    ]  # fmt: skip
+    print("| " + " | ".join(cols) + " |")
+    print("|" + "---|" * len(cols))
+    for r in rows:
+        print("| " + " | ".join(str(r[c]) for c in cols) + " |")
+    for r in rows:
+        print(json.dumps(r))
+
+
+if __name__ == "__main__":
+    main()
