@@ -211,3 +211,15 @@ def test_in_place_change_before_backward_is_refused():
         means.add_(0.1)
     with pytest.raises(RuntimeError, match="modified by an inplace operation"):
         proj.means2d.sum().backward()
+
+
+def test_gradient_free_call_gives_the_same_projection():
+    """Without a graph the kernel skips the backward's state; the outputs must not move."""
+    m, q, s = (t.requires_grad_(True) for t in _gaussians(300, 4, torch.float32))
+    cam = _camera()
+    with_graph = project_fused(m, q, s, cam)
+    with torch.no_grad():
+        without = project_fused(m, q, s, cam)
+    assert with_graph.means2d.requires_grad and not without.means2d.requires_grad
+    for name in ("means2d", "conics", "depths", "radii", "compensation"):
+        assert torch.equal(getattr(with_graph, name).detach(), getattr(without, name)), name

@@ -147,6 +147,7 @@ def _forward_range(
     lxn, lxp, lyn, lyp = lims[0], lims[1], lims[2], lims[3]
     near, far, eps2d, eps_dt = params[0], params[1], params[2], params[3]
     use_covs = covs.shape[0] > 0
+    keep_state = state.shape[0] > 0
     R = np.empty((3, 3))
     Sc = np.empty((3, 3))
     M = np.empty((3, 3))
@@ -178,16 +179,17 @@ def _forward_range(
                 r = 0
         radii[i] = r
         comp[i] = math.sqrt(max(det0 / ds, 1e-12))
-        state[i, _S_QN] = qn
-        state[i, _S_ZS] = zs
-        state[i, _S_IND] = 1.0 if in_depth else 0.0
-        state[i, _S_CLX] = 1.0 if (-lxn <= rx <= lxp) else 0.0
-        state[i, _S_CLY] = 1.0 if (-lyn <= ry <= lyp) else 0.0
-        state[i, _S_A0P] = 1.0 if a_raw >= 0.0 else 0.0
-        state[i, _S_C0P] = 1.0 if c_raw >= 0.0 else 0.0
-        state[i, _S_BP] = 1.0 if (-lim <= b_raw <= lim) else 0.0
-        state[i, _S_D0P] = 1.0 if d0_raw >= 0.0 else 0.0
-        state[i, _S_OK] = 1.0 if ok else 0.0
+        if keep_state:  # what the backward needs; a gradient-free call skips it
+            state[i, _S_QN] = qn
+            state[i, _S_ZS] = zs
+            state[i, _S_IND] = 1.0 if in_depth else 0.0
+            state[i, _S_CLX] = 1.0 if (-lxn <= rx <= lxp) else 0.0
+            state[i, _S_CLY] = 1.0 if (-lyn <= ry <= lyp) else 0.0
+            state[i, _S_A0P] = 1.0 if a_raw >= 0.0 else 0.0
+            state[i, _S_C0P] = 1.0 if c_raw >= 0.0 else 0.0
+            state[i, _S_BP] = 1.0 if (-lim <= b_raw <= lim) else 0.0
+            state[i, _S_D0P] = 1.0 if d0_raw >= 0.0 else 0.0
+            state[i, _S_OK] = 1.0 if ok else 0.0
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -368,7 +370,9 @@ class FusedProjection(torch.autograd.Function):
         depths = np.empty(n, np.float64)
         radii = np.empty(n, np.int64)
         comp = np.empty(n, np.float64)
-        state = np.empty((n, _N_STATE), np.float64)
+        # Only a backward reads the state (80 bytes a Gaussian): skip it without one.
+        keep = any(ctx.needs_input_grad[:4])
+        state = np.empty((n if keep else 0, _N_STATE), np.float64)
         args = (m, q, s, c, *cam, means2d, conics, depths, radii, comp, state)
         run_ranges(_forward_range, n, args)
         # The numpy views alias the inputs: saving them makes autograd refuse a backward
@@ -438,6 +442,8 @@ def project_fused(
         raise ValueError("project_fused gives no gradient to covariances; use project_gaussians")
     if covariances is None and (quats is None or scales is None):
         raise ValueError("project_fused needs quats and scales, or covariances")
+    if not torch.is_grad_enabled():  # no graph: the kernel then skips the backward's state
+        means, quats, scales = (None if t is None else t.detach() for t in (means, quats, scales))
     means2d, conics, comp, depths, radii = FusedProjection.apply(
         means, quats, scales, covariances, camera, float(near), float(far), float(eps2d)
     )
