@@ -91,14 +91,16 @@ def _shade_rows(
             refl[j, i, 2] = dz
             fill = 1.0 - alpha[j, i]
             big = max(abs(dx), abs(dy), abs(dz))
-            if math.isfinite(dx + dy + dz) and big > min_major:
+            w = np.float64(w_r[j, i])
+            # w_r = 0 (background, diffuse surfaces) makes the specular term exactly 0:
+            # the env map is finite, so the lookup is skipped there.
+            if w != 0.0 and math.isfinite(dx + dy + dz) and big > min_major:
                 face, x, y = _face_uv(dx, dy, dz, res)
                 x0 = min(max(math.floor(x), 0.0), p - 2.0)
                 y0 = min(max(math.floor(y), 0.0), p - 2.0)
                 fxw = x - x0
                 fyw = y - y0
                 t00 = face * p * p + int(y0) * p + int(x0)
-                w = np.float64(w_r[j, i])
                 for c in range(n_ch):
                     a00, a01 = padded[t00, c], padded[t00 + 1, c]
                     a10, a11 = padded[t00 + p, c], padded[t00 + p + 1, c]
