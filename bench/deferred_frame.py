@@ -7,8 +7,9 @@ compositing) followed by deferred shading (Eq. 9). Both scenes of the rasteriser
 benchmarks are timed: the viewer benchmark's glossy sphere of flat discs with an env
 map, and bench.raster's random blob (shaded with a constant grey env map). The
 compiled shading and the PyTorch shading it replaces run side by side in the same
-process, so the ratio between them is the figure to trust on a noisy machine. Prints
-a Markdown table and one JSON line per scene; peak RSS is the process's.
+process, and every round times every stage once (interleaved), so ratios and stage
+sums hold on a machine whose speed drifts. Prints a Markdown table and one JSON line
+per scene; peak RSS is the process's.
 """
 
 from __future__ import annotations
@@ -35,20 +36,17 @@ from core.synthetic import default_env
 from core.threads import configure_cpu_threads
 
 
-def _samples(fn: Callable[[], object], repeat: int) -> list[float]:
-    """Wall ms of ``repeat`` runs after one warm-up."""
-    fn()
-    out = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        out.append((time.perf_counter() - t0) * 1000.0)
+def _interleaved(stages: dict[str, Callable[[], object]], repeat: int) -> dict[str, list[float]]:
+    """Wall ms of each stage, ``repeat`` rounds after one warm-up round; every round
+    runs every stage once, so a machine whose speed drifts slows all stages alike."""
+    out: dict[str, list[float]] = {k: [] for k in stages}
+    for r in range(repeat + 1):
+        for name, fn in stages.items():
+            t0 = time.perf_counter()
+            fn()
+            if r:
+                out[name].append((time.perf_counter() - t0) * 1000.0)
     return out
-
-
-def _times(fn: Callable[[], object], repeat: int) -> float:
-    """Median ms over ``repeat`` runs after one warm-up."""
-    return statistics.median(_samples(fn, repeat))
 
 
 def _sphere_scene(n: int, size: int) -> dict:
@@ -110,32 +108,30 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
         bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size)
         opac = s["opacities"] * proj.compensation
         gb = gbuf()
-        row = {
-            "scene": name,
-            "gaussians": int(s["means"].shape[0]),
-            "size": size,
-            "tile_pairs": int(bins.gauss_ids.numel()),
-            "coverage": round(float(gb.alpha.mean()), 3),
-            "features_ms": _times(
-                lambda: gbuffer_features(s["means"], s["colors"], s["normals"], s["w_r"], cam),
-                repeat,
+        stages: dict[str, Callable[[], object]] = {
+            "features_ms": lambda: gbuffer_features(
+                s["means"], s["colors"], s["normals"], s["w_r"], cam
             ),
-            "projection_ms": _times(proj_fn, repeat),
-            "binning_ms": _times(
-                lambda: bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size), repeat
-            ),
-            "compositing_ms": _times(
-                lambda: rasterize_cpu(proj, opac, feats, bins, size, size), repeat
-            ),
-            "gbuffer_ms": _times(gbuf, repeat),
-            "shade_compiled_ms": _times(lambda: deferred_shade(gb, env, bg), repeat),
-            "shade_pytorch_ms": _times(lambda: deferred_shade(gb, env, bg, compiled=False), repeat),
+            "projection_ms": proj_fn,
+            "binning_ms": lambda: bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size),
+            "compositing_ms": lambda: rasterize_cpu(proj, opac, feats, bins, size, size),
+            "gbuffer_ms": gbuf,
+            "shade_compiled_ms": lambda: deferred_shade(gb, env, bg),
+            "shade_pytorch_ms": lambda: deferred_shade(gb, env, bg, compiled=False),
+            "frame_ms": lambda: deferred_shade(gbuf(), env, bg),
         }
-        frames = _samples(lambda: deferred_shade(gbuf(), env, bg), repeat)
-    # Medians of each stage and of whole frames; on a machine whose speed drifts the
-    # best frame (min) is the steadier figure, so both are given.
-    row["frame_ms"] = statistics.median(frames)
-    row["frame_best_ms"] = min(frames)
+        samples = _interleaved(stages, repeat)
+    row: dict[str, object] = {
+        "scene": name,
+        "gaussians": int(s["means"].shape[0]),
+        "size": size,
+        "tile_pairs": int(bins.gauss_ids.numel()),
+        "coverage": round(float(gb.alpha.mean()), 3),
+    }
+    row.update({k: statistics.median(v) for k, v in samples.items()})
+    # The best frame (min) is also given: on a machine whose speed drifts it is the
+    # steadier figure; the medians of all stages come from the same rounds.
+    row["frame_best_ms"] = min(samples["frame_ms"])
     row["fps"] = round(1000.0 / row["frame_ms"], 2)
     row["fps_best"] = round(1000.0 / row["frame_best_ms"], 2)
     row["shade_speedup"] = round(row["shade_pytorch_ms"] / row["shade_compiled_ms"], 1)
