@@ -92,16 +92,6 @@ class GBuffer:
 _C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
 
 
-def facing_normals_camera(normals_world: Tensor, means: Tensor, camera: Camera) -> Tensor:
-    """Eq. 6 normals in camera space, flipped so each faces the camera (n·μ_cam ≤ 0)."""
-    R = camera.R.to(means)
-    t = camera.t.to(means)
-    n_cam = normals_world @ R.T
-    mu_cam = means @ R.T + t
-    sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
-    return n_cam * sign
-
-
 def gbuffer_features(
     means: Tensor,
     colors: Tensor,
@@ -119,8 +109,12 @@ def gbuffer_features(
     """
     if compiled and can_build_compiled(means, colors, normals_world, w_r):
         return features_compiled(means, colors, normals_world, w_r, camera)
-    n_cam = facing_normals_camera(normals_world, means, camera)
-    mu_cam = means @ camera.R.to(means).T + camera.t.to(means)
+    R = camera.R.to(means)
+    mu_cam = means @ R.T + camera.t.to(means)
+    n_cam = normals_world @ R.T
+    # Eq. 6 normals flipped so each faces the camera (n·μ_cam ≤ 0).
+    sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
+    n_cam = n_cam * sign
     D = (n_cam * mu_cam).sum(-1, keepdim=True)
     return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
 

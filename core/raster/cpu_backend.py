@@ -48,7 +48,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.kernel_pool import kernel_threads, run_ranges, run_workers, set_kernel_threads
+from core.kernel_pool import kernel_threads, run_ranges, run_workers
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
 
@@ -63,7 +63,7 @@ except ImportError as exc:  # pragma: no cover - numba is a declared dependency
         return lambda fn: fn
 
 
-__all__ = ["CpuComposite", "available", "kernel_threads", "rasterize_cpu", "set_kernel_threads"]
+__all__ = ["CpuComposite", "available", "rasterize_cpu"]
 
 # Culling margin: a pixel is skipped only when power < log(ALPHA_MIN / o) - _MARGIN / 2,
 # i.e. alpha is below 1/255 by ≥ 5 %, far beyond float32 rounding of the power.
