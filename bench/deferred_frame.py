@@ -5,11 +5,11 @@
 A viewer frame is the G-buffer pass (per-Gaussian channels, projection, binning,
 compositing) followed by deferred shading (Eq. 9). Both scenes of the rasteriser
 benchmarks are timed: the viewer benchmark's glossy sphere of flat discs with an env
-map, and bench.raster's random blob (shaded with a constant grey env map). The
-compiled shading and the PyTorch shading it replaces run side by side in the same
-process, and every round times every stage once (interleaved), so ratios and stage
-sums hold on a machine whose speed drifts. Prints a Markdown table and one JSON line
-per scene; peak RSS is the process's.
+map, and bench.raster's random blob (shaded with a constant grey env map). Compiled
+and PyTorch shading, and SIMD and numba compositing, run side by side in the same
+process; every round times every stage once (interleaved), so ratios and stage sums
+hold on a machine whose speed drifts. Prints a Markdown table and one JSON line per
+scene; peak RSS is the process's.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from core.cameras import Camera, Intrinsics
 from core.envmap import EnvMap, texel_directions
 from core.gbuffer import gbuffer_features, near_plane, render_gbuffer_tensors
 from core.kernel_pool import kernel_threads
-from core.raster import PROJECTORS, bin_gaussians
+from core.raster import PROJECTORS, bin_gaussians, cpu_simd
 from core.raster.cpu_backend import rasterize_cpu
 from core.shading import deferred_shade
 from core.synthetic import default_env
@@ -115,6 +115,9 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
             "projection_ms": proj_fn,
             "binning_ms": lambda: bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size),
             "compositing_ms": lambda: rasterize_cpu(proj, opac, feats, bins, size, size),
+            "compositing_numba_ms": lambda: rasterize_cpu(
+                proj, opac, feats, bins, size, size, simd=False
+            ),
             "gbuffer_ms": gbuf,
             "shade_compiled_ms": lambda: deferred_shade(gb, env, bg),
             "shade_pytorch_ms": lambda: deferred_shade(gb, env, bg, compiled=False),
@@ -135,6 +138,8 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
     row["fps"] = round(1000.0 / row["frame_ms"], 2)
     row["fps_best"] = round(1000.0 / row["frame_best_ms"], 2)
     row["shade_speedup"] = round(row["shade_pytorch_ms"] / row["shade_compiled_ms"], 1)
+    row["composite_speedup"] = round(row["compositing_numba_ms"] / row["compositing_ms"], 1)
+    row["compositing_kernel"] = "simd" if cpu_simd.why_unavailable() is None else "numba"
     row["peak_rss_mib"] = round(peak_rss_mib(), 1)
     return {k: round(v, 2) if isinstance(v, float) else v for k, v in row.items()}
 
@@ -155,8 +160,8 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{machine_line()}, {kernel_threads()} kernel threads; medians of {args.repeat}\n")
     cols = [
         "scene", "tile_pairs", "features_ms", "projection_ms", "binning_ms", "compositing_ms",
-        "gbuffer_ms", "shade_compiled_ms", "shade_pytorch_ms", "frame_ms", "fps",
-        "frame_best_ms", "fps_best", "peak_rss_mib",
+        "compositing_numba_ms", "gbuffer_ms", "shade_compiled_ms", "shade_pytorch_ms",
+        "frame_ms", "fps", "frame_best_ms", "fps_best", "peak_rss_mib",
     ]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))

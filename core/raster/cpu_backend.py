@@ -49,6 +49,7 @@ import torch
 from torch import Tensor
 
 from core.kernel_pool import kernel_threads, run_ranges, run_workers
+from core.raster import cpu_simd
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
 
@@ -540,12 +541,48 @@ def rasterize_cpu(
     bins: TileBins,
     width: int,
     height: int,
+    simd: bool | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """Composite projected Gaussians into (H, W, C) features and (H, W) alpha."""
-    feats, alpha = CpuComposite.apply(
-        proj.means2d, proj.conics, opacities, features, bins, width, height
-    )
+    """Composite projected Gaussians into (H, W, C) features and (H, W) alpha.
+
+    A gradient-free float32 call takes the SIMD kernel of ``core.raster.cpu_simd``
+    where it applies (``simd=None``); ``simd=False`` keeps the numba kernel,
+    ``simd=True`` insists on the SIMD one (tests, benchmarks).
+    """
+    use_simd = simd
+    if simd is None or simd:
+        ok = cpu_simd.applies(proj.means2d, proj.conics, opacities, features, bins.tile_size)
+        if simd and not ok:
+            why = cpu_simd.why_unavailable() or "it needs float32, 16-px tiles and no gradient"
+            raise RuntimeError(f"the SIMD compositing kernel does not apply here: {why}")
+        use_simd = ok
+    if use_simd:
+        feats, alpha = _composite_simd(
+            proj.means2d, proj.conics, opacities, features, bins, width, height
+        )
+    else:
+        feats, alpha = CpuComposite.apply(
+            proj.means2d, proj.conics, opacities, features, bins, width, height
+        )
     return feats.to(features.dtype), alpha.to(features.dtype)
+
+
+def _composite_simd(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    features: Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor]:
+    n_ch = features.shape[1]
+    out_feat = np.zeros((height, width, n_ch), np.float32)
+    out_T = np.ones((height, width), np.float32)
+    if bins.gauss_ids.numel() > 0 and n_ch > 0:
+        setup = _Setup(means2d, conics, opacities, features, bins, width, height, torch.float32)
+        cpu_simd.composite(setup.args(), kernel_threads(), out_feat, out_T)
+    return torch.from_numpy(out_feat), 1.0 - torch.from_numpy(out_T)
 
 
 # Registered even without numba, so that asking for "cpu" says why it cannot run.

@@ -1,0 +1,200 @@
+"""The SIMD compositing kernel (gradient-free frames) against the reference and numba.
+
+The kernel's only intended difference from the exact kernels is its polynomial exp
+(about 2 float32 ulps), so outputs must agree to float32 rounding on random scenes
+with the edge cases of test_raster_cpu: image sizes that are not tile multiples,
+Gaussians off-screen and behind the camera, needle-flat ones, the 0.99 clamp, early
+termination, degenerate conics and NaN inputs. Every vector width the source can
+build for (16, 8, 4 lanes on x86) is checked, and the dispatch must keep every call
+that needs a gradient or float64 on the exact kernel.
+"""
+
+from __future__ import annotations
+
+import platform
+
+import numpy as np
+import pytest
+import torch
+
+from core import native_build
+from core.raster import bin_gaussians, covariances_from, cpu_simd, project_gaussians, rasterize
+from core.raster.cpu_backend import _Setup, rasterize_cpu
+from core.raster.projection import T_MIN, Projected
+from core.raster.reference import rasterize_reference
+from tests.test_raster_cpu import _camera, _scene
+
+F32 = torch.float32
+
+pytestmark = pytest.mark.skipif(
+    cpu_simd.why_unavailable() is not None,
+    reason=f"SIMD kernel not built here: {cpu_simd.why_unavailable()}",
+)
+
+
+def _projected(scene, cam):
+    means, quats, scales, op, feats = scene
+    proj = project_gaussians(means, covariances_from(quats, scales), cam)
+    bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, cam.width, cam.height)
+    return proj, op * proj.compensation, feats, bins
+
+
+def _all_three(proj, op, feats, bins, w, h):
+    """(SIMD, numba, reference) outputs of one composite, without gradients."""
+    with torch.no_grad():
+        simd = rasterize_cpu(proj, op, feats, bins, w, h, simd=True)
+        exact = rasterize_cpu(proj, op, feats, bins, w, h, simd=False)
+        ref = rasterize_reference(proj, op, feats, bins, w, h)
+    return simd, exact, ref
+
+
+def _assert_close(got, want, tol: float = 2e-6) -> None:
+    torch.testing.assert_close(got[0], want[0], rtol=0, atol=tol)
+    torch.testing.assert_close(got[1], want[1], rtol=0, atol=tol)
+
+
+@pytest.mark.parametrize(
+    ("seed", "size", "channels", "flat"),
+    [
+        (0, (37, 29), 3, False),
+        (1, (32, 32), 1, True),
+        (2, (20, 41), 9, True),
+        (3, (70, 45), 17, False),
+    ],
+)
+def test_matches_numba_and_reference(seed, size, channels, flat):
+    cam = _camera(*size)
+    scene = _scene(300, seed, channels, F32, flat=flat)
+    proj, op, feats, bins = _projected(scene, cam)
+    simd, exact, ref = _all_three(proj, op, feats, bins, *size)
+    assert float(ref[1].mean()) > 0.2  # the scene covers the image: the test can fail
+    assert simd[0].dtype == F32 and simd[0].shape == (size[1], size[0], channels)
+    _assert_close(simd, exact)
+    _assert_close(simd, ref, tol=1e-5)
+
+
+@pytest.mark.parametrize("seed", [4, 5])
+def test_early_termination_and_clamp(seed):
+    cam = _camera(35, 27)
+    scene = _scene(400, seed, 3, F32, opacity=(0.9, 1.0))
+    scene[2][:60] *= 4.0
+    scene[3][:60] = 1.0  # alpha clamps at 0.99 near these centres
+    proj, op, feats, bins = _projected(scene, cam)
+    simd, exact, ref = _all_three(proj, op, feats, bins, 35, 27)
+    T = 1.0 - simd[1]
+    assert bool((T >= T_MIN * (1 - 1e-5)).all()) and int((T < 1e-2).sum()) > 100
+    _assert_close(simd, exact)
+    _assert_close(simd, ref, tol=1e-5)
+
+
+def test_degenerate_and_nan_inputs_match_numba():
+    # Non positive-definite conics (evaluated without culling), opacities at 1/255,
+    # above 1, huge and infinite (alpha = inf · exp(power) is NaN where exp underflows),
+    # NaN opacity, NaN centre, NaN conic: each kernel must skip or keep them alike.
+    g = torch.Generator().manual_seed(13)
+    n, W, H = 60, 45, 33
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
+    conics = torch.stack(
+        [torch.rand(n, generator=g) * 0.3 + 0.02, (torch.rand(n, generator=g) - 0.5) * 0.05,
+         torch.rand(n, generator=g) * 0.3 + 0.02], dim=-1,
+    )  # fmt: skip
+    conics[:4, 1] = 0.5  # saddle: power > 0 on part of the tile
+    conics[4:6, 0] = -0.01
+    conics[6, :] = 0.0  # power 0 everywhere
+    conics[7, 2] = float("nan")
+    op = torch.rand(n, generator=g) * 0.8 + 0.1
+    op[8] = 1 / 255
+    op[9] = float("nan")
+    means2d[10, 0] = float("nan")
+    op[11], op[12], op[13] = 5.0, 1e36, float("inf")
+    conics[12:14, 1] = 0.0  # huge/infinite opacity with and without culling
+    conics[13, 0] = -0.02
+    feats = torch.rand(n, 5, generator=g)
+    depths = torch.rand(n, generator=g) + 1.0
+    radii = torch.full((n,), 9, dtype=torch.int64)
+    bins = bin_gaussians(means2d, depths, radii, W, H)
+    proj = Projected(means2d, conics, depths, radii, torch.zeros(n, 2, 2))
+    simd, exact, ref = _all_three(proj, op, feats, bins, W, H)
+    assert bool(torch.isfinite(simd[0]).all())
+    _assert_close(simd, exact)
+    _assert_close(simd, ref, tol=1e-5)
+
+
+def test_viewer_sized_frame_matches_numba():
+    cam = _camera(256, 192)
+    scene = _scene(20000, 21, 9, F32, flat=True)
+    proj, op, feats, bins = _projected(scene, cam)
+    with torch.no_grad():
+        simd = rasterize_cpu(proj, op, feats, bins, 256, 192, simd=True)
+        exact = rasterize_cpu(proj, op, feats, bins, 256, 192, simd=False)
+    # Pixels integrate hundreds of Gaussians: rounding differences add up a little.
+    _assert_close(simd, exact, tol=2e-5)
+    assert float((simd[0] - exact[0]).abs().mean()) < 1e-7
+
+
+def _native_widths() -> list[tuple[str, ...]]:
+    """Builds that force narrower vectors on this x86 machine (16, 8 and 4 lanes)."""
+    if platform.machine() not in ("x86_64", "AMD64"):
+        return [()]
+    return [(), ("-mno-avx512f",), ("-mno-avx512f", "-mno-avx")]
+
+
+@pytest.mark.parametrize("flags", _native_widths(), ids=lambda f: " ".join(f) or "native")
+def test_every_vector_width_gives_the_same_frame(flags):
+    lib = cpu_simd.library(flags)
+    assert lib is not None, native_build.why_unavailable(cpu_simd.SOURCE, flags)
+    cam = _camera(83, 61)
+    scene = _scene(800, 30, 6, F32)
+    proj, op, feats, bins = _projected(scene, cam)
+    with torch.no_grad():
+        exact = rasterize_cpu(proj, op, feats, bins, 83, 61, simd=False)
+    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 83, 61, F32)
+    out_feat = np.zeros((61, 83, 6), np.float32)
+    out_T = np.ones((61, 83), np.float32)
+    cpu_simd.composite(setup.args(), 2, out_feat, out_T, lib=lib)
+    _assert_close((torch.from_numpy(out_feat), 1 - torch.from_numpy(out_T)), exact)
+
+
+def test_thread_count_does_not_change_the_frame():
+    cam = _camera(50, 38)
+    scene = _scene(300, 12, 4, F32)
+    proj, op, feats, bins = _projected(scene, cam)
+    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 50, 38, F32)
+    outs = []
+    for threads in (1, 3):
+        f, t = np.zeros((38, 50, 4), np.float32), np.ones((38, 50), np.float32)
+        cpu_simd.composite(setup.args(), threads, f, t)
+        outs.append((f, t))
+    assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
+
+
+def test_dispatch_takes_simd_only_without_gradients(monkeypatch):
+    calls = []
+    real = cpu_simd.composite
+    monkeypatch.setattr(cpu_simd, "composite", lambda *a, **k: (calls.append(1), real(*a, **k)))
+    cam = _camera(30, 20)
+    scene = _scene(80, 3, 3, F32)
+    with torch.no_grad():
+        r = rasterize(*scene, cam, backend="cpu")
+    assert len(calls) == 1 and r.features.grad_fn is None
+    params = [t.clone().requires_grad_(True) for t in scene]
+    r = rasterize(*params, cam, backend="cpu")  # training: numba, with a backward
+    assert len(calls) == 1 and r.features.grad_fn is not None
+    r = rasterize(*[t.double() for t in scene], cam, backend="cpu")  # float64: numba
+    assert len(calls) == 1
+    with torch.no_grad():
+        proj, op, feats, bins = _projected(scene, cam)
+        with pytest.raises(RuntimeError, match="does not apply"):
+            rasterize_cpu(proj, op.double(), feats, bins, 30, 20, simd=True)
+        small = bin_gaussians(proj.means2d, proj.depths, proj.radii, 30, 20, tile_size=8)
+        rasterize_cpu(proj, op, feats, small, 30, 20)  # 8-px tiles: numba
+        assert len(calls) == 1
+
+
+def test_composite_rejects_wrong_arrays():
+    cam = _camera(20, 20)
+    scene = _scene(30, 2, 2, F32)
+    proj, op, feats, bins = _projected(scene, cam)
+    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 20, 20, F32)
+    with pytest.raises(ValueError, match="out_feat must be C-contiguous float32"):
+        cpu_simd.composite(setup.args(), 1, np.zeros((20, 20, 2)), np.ones((20, 20), np.float32))
