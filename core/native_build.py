@@ -11,8 +11,14 @@ and the CPU's model and feature flags, so a cache copied to another machine, or 
 container image built on one, is rebuilt rather than run with the wrong
 instructions. Setting ``GLINT_NATIVE=0`` turns native kernels off.
 
-When no compiler works, :func:`load` returns None and :func:`why_unavailable`
-says why; callers fall back to their numba kernels.
+Images without a compiler ship prebuilt variants instead: ``python -m
+core.native_build --prebuild DIR`` (in an image's build stage) compiles every kernel
+for each x86-64 micro-architecture level (v4: AVX-512, v3: AVX2, v2, baseline) or
+the baseline of other machines, and ``GLINT_NATIVE_PREBUILT=DIR`` at run time loads
+the best level this CPU supports, before any compiling is tried.
+
+When neither works, :func:`load` returns None and :func:`why_unavailable` says
+why; callers fall back to their numba kernels.
 """
 
 from __future__ import annotations
@@ -28,7 +34,7 @@ import tempfile
 import threading
 from pathlib import Path
 
-__all__ = ["cache_dir", "load", "why_unavailable"]
+__all__ = ["SOURCES", "cache_dir", "load", "prebuild", "why_unavailable"]
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +44,18 @@ log = logging.getLogger(__name__)
 _FLAGS = ["-O3", "-ffp-contract=off", "-fno-math-errno", "-fno-trapping-math", "-shared", "-fPIC"]
 _ARCH_FLAGS = ["-march=native"]
 _COMPILE_TIMEOUT_S = 120
+
+# The bundled kernel sources (what --prebuild builds).
+SOURCES = tuple(sorted((Path(__file__).parent / "raster" / "native").glob("*.c")))
+
+# x86-64 micro-architecture levels of prebuilt kernels, best first, with the
+# /proc/cpuinfo flags each needs.
+_X86_LEVELS: tuple[tuple[str, frozenset[str]], ...] = (
+    ("x86-64-v4", frozenset({"avx512f", "avx512bw", "avx512cd", "avx512dq", "avx512vl"})),
+    ("x86-64-v3", frozenset({"avx", "avx2", "fma", "bmi1", "bmi2", "f16c", "movbe"})),
+    ("x86-64-v2", frozenset({"sse4_1", "sse4_2", "ssse3", "popcnt"})),
+    ("x86-64", frozenset()),
+)
 
 _LOCK = threading.Lock()
 _LOADED: dict[str, ctypes.CDLL] = {}
@@ -74,16 +92,77 @@ def _cpu_signature() -> str:
     return "\n".join(sorted(set(keep)))
 
 
+def _cpu_flags() -> frozenset[str]:
+    """The CPU's feature flags as /proc/cpuinfo spells them (empty where unknown)."""
+    for line in _cpu_signature().splitlines():
+        if line.split(":")[0].strip() in ("flags", "Features"):
+            return frozenset(line.split(":", 1)[1].split())
+    return frozenset()
+
+
+def _levels() -> tuple[tuple[str, frozenset[str]], ...]:
+    """Prebuilt variants for this kind of machine: (-march value, flags it needs)."""
+    machine = platform.machine().lower()
+    if machine in ("x86_64", "amd64"):
+        return _X86_LEVELS
+    if machine in ("aarch64", "arm64"):
+        return (("armv8-a", frozenset()),)
+    return ()
+
+
+def _prebuilt_name(source: Path, level: str) -> str:
+    digest = hashlib.sha256(source.read_bytes()).hexdigest()[:16]
+    return f"{source.stem}-{digest}-{level}.so"
+
+
+def prebuild(out_dir: Path, sources: tuple[Path, ...] = SOURCES) -> list[Path]:
+    """Compile every source for every level of this kind of machine into ``out_dir``."""
+    cc = _compiler()
+    if cc is None:
+        raise RuntimeError("no C compiler found (set CC, or install gcc or clang)")
+    if not _levels():
+        raise RuntimeError(f"no prebuilt levels are defined for {platform.machine()}")
+    built = []
+    for source in sources:
+        for level, _ in _levels():
+            target = Path(out_dir) / _prebuilt_name(source, level)
+            why = _compile(cc, source, target, [f"-march={level}"], fallback=False)
+            if why is not None:
+                raise RuntimeError(why)
+            built.append(target)
+    return built
+
+
+def _load_prebuilt(source: Path) -> ctypes.CDLL | None:
+    """The best prebuilt variant of ``source`` for this CPU, if GLINT_NATIVE_PREBUILT
+    points at a directory holding one."""
+    root = os.environ.get("GLINT_NATIVE_PREBUILT")
+    if not root:
+        return None
+    flags = _cpu_flags()
+    for level, needs in _levels():
+        path = Path(root) / _prebuilt_name(source, level)
+        if needs <= flags and path.is_file():
+            try:
+                return ctypes.CDLL(str(path))
+            except OSError as exc:
+                log.warning("cannot load prebuilt %s: %s", path, exc)
+    return None
+
+
 def _version(cc: str) -> str:
     out = subprocess.run([cc, "--version"], capture_output=True, text=True, timeout=30)
     return out.stdout.strip()
 
 
-def _compile(cc: str, source: Path, target: Path, extra: tuple[str, ...]) -> str | None:
-    """Compile ``source`` into ``target`` (atomically); None on success, else why not."""
+def _compile(
+    cc: str, source: Path, target: Path, extra: list[str], fallback: bool = True
+) -> str | None:
+    """Compile ``source`` into ``target`` (atomically); None on success, else why not.
+    With ``fallback`` a compiler that rejects -march=native builds without it."""
     target.parent.mkdir(parents=True, exist_ok=True)
     errors = []
-    for arch in (_ARCH_FLAGS, []):  # a compiler without -march=native still builds
+    for arch in (_ARCH_FLAGS, []) if fallback else ([],):
         fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
         os.close(fd)
         cmd = [cc, *_FLAGS, *arch, *extra, "-o", tmp, str(source), "-lm"]
@@ -139,6 +218,10 @@ def why_unavailable(source: Path, extra_flags: tuple[str, ...] = ()) -> str | No
 def _build_and_load(source: Path, extra: tuple[str, ...]) -> tuple[ctypes.CDLL | None, str]:
     if not source.is_file():
         return None, f"{source} is missing from the installation"
+    if not extra:
+        lib = _load_prebuilt(source)
+        if lib is not None:
+            return lib, ""
     cc = _compiler()
     if cc is None:
         return None, "no C compiler found (set CC, or install gcc or clang)"
@@ -155,7 +238,7 @@ def _build_and_load(source: Path, extra: tuple[str, ...]) -> tuple[ctypes.CDLL |
     target = cache_dir() / f"{source.stem}-{h.hexdigest()[:20]}.so"
     if not target.is_file():
         try:
-            why = _compile(cc, source, target, extra)
+            why = _compile(cc, source, target, list(extra))
         except OSError as exc:  # e.g. the cache directory is not writable
             why = f"cannot write {target.parent}: {exc}"
         if why is not None:
@@ -164,3 +247,18 @@ def _build_and_load(source: Path, extra: tuple[str, ...]) -> tuple[ctypes.CDLL |
         return ctypes.CDLL(str(target)), ""
     except OSError as exc:
         return None, f"cannot load {target}: {exc}"
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m core.native_build --prebuild DIR``: the image build step."""
+    import argparse
+
+    ap = argparse.ArgumentParser(description=main.__doc__)
+    ap.add_argument("--prebuild", type=Path, required=True, metavar="DIR")
+    args = ap.parse_args(argv)
+    for path in prebuild(args.prebuild):
+        print(path)
+
+
+if __name__ == "__main__":
+    main()

@@ -7,7 +7,8 @@
 #   docker build -f docker/api.Dockerfile -t glint-api .          # from the repo root
 #
 # Stages:
-#   build    python slim + pip: a venv in /opt/venv with CPU torch, glint, psycopg
+#   build    python slim + pip + gcc: a venv in /opt/venv with CPU torch, glint, psycopg,
+#            and glint's C kernels prebuilt for each x86-64 level (core/native_build.py)
 #   runtime  python slim + that venv; no compiler, no pip cache, no sources
 #
 # Base image pinned by tag. Pin the digest too when you cut a release:
@@ -23,6 +24,10 @@ ARG TORCH_VERSION
 ENV PIP_NO_CACHE_DIR=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PYTHONDONTWRITEBYTECODE=1
+# gcc builds the SIMD compositing kernel (viewer frames) here, so the runtime needs none
+RUN apt-get update \
+    && apt-get install -y --no-install-recommends gcc libc6-dev \
+    && rm -rf /var/lib/apt/lists/*
 RUN python -m venv /opt/venv
 ENV PATH=/opt/venv/bin:$PATH
 # torch first, from the CPU index, so no resolver ever pulls a CUDA build (as
@@ -35,7 +40,8 @@ COPY . .
 # psycopg: PostgreSQL driver for GLINT_DATABASE_URL=postgresql+psycopg://... (the
 # project's "postgres" extra, spelled out so the version range is pinned here too).
 RUN pip install . "psycopg[binary]>=3.1,<4" \
-    && glint --help >/dev/null
+    && glint --help >/dev/null \
+    && python -m core.native_build --prebuild /opt/venv/share/glint-native
 
 FROM python:3.11.11-slim-bookworm AS runtime
 LABEL org.opencontainers.image.title="glint-api" \
@@ -49,7 +55,8 @@ ENV PATH=/opt/venv/bin:$PATH \
     GLINT_HOST=0.0.0.0 \
     GLINT_PORT=8000 \
     MPLCONFIGDIR=/tmp/matplotlib \
-    NUMBA_CACHE_DIR=/tmp/numba
+    NUMBA_CACHE_DIR=/tmp/numba \
+    GLINT_NATIVE_PREBUILT=/opt/venv/share/glint-native
 RUN groupadd --system --gid 10001 glint \
     && useradd --system --uid 10001 --gid glint --home-dir /home/glint --create-home glint \
     && install -d -o glint -g glint /var/lib/glint /var/lib/glint/store

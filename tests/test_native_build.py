@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import platform
 import shutil
 
 import pytest
@@ -112,3 +113,35 @@ def test_compiler_choice_honours_cc(monkeypatch):
         pytest.skip("no C compiler here")
     monkeypatch.setenv("CC", cc)
     assert native_build._compiler() == cc
+
+
+@needs_cc
+def test_prebuilt_variants_load_without_a_compiler(tmp_path, cache, monkeypatch):
+    if not native_build._levels():
+        pytest.skip(f"no prebuilt levels for {platform.machine()}")
+    src = _source(tmp_path, "pre", GOOD)
+    out = tmp_path / "prebuilt"
+    built = native_build.prebuild(out, (src,))
+    levels = [lv for lv, _ in native_build._levels()]
+    assert [p.name for p in built] == [native_build._prebuilt_name(src, lv) for lv in levels]
+    assert all(p.is_file() for p in built) and not list(cache.glob("*"))
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    monkeypatch.setenv("GLINT_NATIVE_PREBUILT", str(out))
+    lib, why = native_build._build_and_load(src, ())
+    assert lib is not None and lib.answer(3) == 7
+    best = next(lv for lv, needs in native_build._levels() if needs <= native_build._cpu_flags())
+    assert lib._name.endswith(f"-{best}.so")
+    # A CPU without any of the optional flags gets the baseline build.
+    monkeypatch.setattr(native_build, "_cpu_flags", frozenset)
+    lib, _ = native_build._build_and_load(src, ())
+    assert lib._name.endswith(f"-{native_build._levels()[-1][0]}.so")
+    # An edited source does not pick up a stale prebuilt library.
+    src.write_text(GOOD + "int other(void) { return 7; }\n")
+    lib, why = native_build._build_and_load(src, ())
+    assert lib is None and "no C compiler found" in why
+
+
+def test_prebuild_needs_a_compiler(tmp_path, monkeypatch):
+    monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
+    with pytest.raises(RuntimeError, match="no C compiler found"):
+        native_build.prebuild(tmp_path / "out")

@@ -11,6 +11,7 @@ that needs a gradient or float64 on the exact kernel.
 
 from __future__ import annotations
 
+import ctypes
 import platform
 
 import numpy as np
@@ -198,3 +199,73 @@ def test_composite_rejects_wrong_arrays():
     setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 20, 20, F32)
     with pytest.raises(ValueError, match="out_feat must be C-contiguous float32"):
         cpu_simd.composite(setup.args(), 1, np.zeros((20, 20, 2)), np.ones((20, 20), np.float32))
+
+
+def _screen_space(means2d, conics, op, feats, w, h):
+    n = means2d.shape[0]
+    depths = torch.linspace(1.0, 2.0, n)
+    radii = torch.full((n,), max(w, h), dtype=torch.int64)
+    bins = bin_gaussians(means2d, depths, radii, w, h)
+    return Projected(means2d, conics, depths, radii, torch.zeros(n, 2, 2)), op, feats, bins
+
+
+def test_alphas_at_the_cutoff_decide_as_the_exact_kernel():
+    # Each Gaussian's opacity puts one pixel's alpha within a few ulps of 1/255, where
+    # the vector exp (2 ulps off) alone could decide differently: a whole 1/255 of
+    # colour. Such lanes take libm's expf, so every decision matches numba's.
+    g = torch.Generator().manual_seed(5)
+    n, W, H = 400, 64, 48
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
+    k = torch.rand(n, generator=g) * 0.2 + 0.05
+    conics = torch.stack([k, torch.zeros(n), k], dim=-1)
+    target = means2d.floor() + 0.5 + torch.randint(-3, 4, (n, 2), generator=g)
+    d2 = ((target - means2d) ** 2).sum(-1).double()
+    rel = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1e-6
+    op = ((1 / 255) * (1 + rel) / torch.exp(-0.5 * k.double() * d2)).float()
+    feats = torch.rand(n, 3, generator=g) + 0.5
+    simd, exact, ref = _all_three(*_screen_space(means2d, conics, op, feats, W, H), W, H)
+    _assert_close(simd, exact)
+    _assert_close(simd, ref, tol=1e-5)
+
+
+@pytest.mark.parametrize("opacity", [1e36, float("inf")])
+def test_huge_opacities_follow_libm(opacity):
+    # o · exp(power) with o = 1e36 still reaches 1/255 at power ≈ -88, below the
+    # vector exp's range; an infinite o gives alpha 0.99 until expf underflows to 0
+    # (inf · 0 = NaN: skipped). One Gaussian, wide enough that both happen on screen.
+    W, H = 64, 48
+    means2d = torch.tensor([[30.3, 24.7]])
+    conics = torch.tensor([[0.8, 0.05, 0.9]])
+    op = torch.tensor([opacity])
+    feats = torch.tensor([[1.0, 0.5]])
+    simd, exact, ref = _all_three(*_screen_space(means2d, conics, op, feats, W, H), W, H)
+    covered = float(simd[1].gt(0).float().mean())
+    assert 0.2 < covered < 0.95  # the cut-off ring lies inside the image
+    _assert_close(simd, exact)
+    _assert_close(simd, ref, tol=1e-5)
+
+
+def test_prebuilt_levels_give_the_same_frame(tmp_path):
+    # The variants an image ships (python -m core.native_build --prebuild), each run
+    # where this CPU supports it.
+    if not native_build._levels():
+        pytest.skip(f"no prebuilt levels for {platform.machine()}")
+    native_build.prebuild(tmp_path, (cpu_simd.SOURCE,))
+    cam = _camera(83, 61)
+    scene = _scene(800, 31, 6, F32, flat=True)
+    proj, op, feats, bins = _projected(scene, cam)
+    with torch.no_grad():
+        exact = rasterize_cpu(proj, op, feats, bins, 83, 61, simd=False)
+    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 83, 61, F32)
+    ran = 0
+    for level, needs in native_build._levels():
+        if not needs <= native_build._cpu_flags():
+            continue
+        lib = ctypes.CDLL(str(tmp_path / native_build._prebuilt_name(cpu_simd.SOURCE, level)))
+        cpu_simd._set_signatures(lib)
+        out_feat = np.zeros((61, 83, 6), np.float32)
+        out_T = np.ones((61, 83), np.float32)
+        cpu_simd.composite(setup.args(), 2, out_feat, out_T, lib=lib)
+        _assert_close((torch.from_numpy(out_feat), 1 - torch.from_numpy(out_T)), exact)
+        ran += 1
+    assert ran >= 1

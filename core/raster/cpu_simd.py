@@ -38,11 +38,16 @@ def library(extra_flags: tuple[str, ...] = ()) -> ctypes.CDLL | None:
     build a variant, e.g. another vector width for the tests."""
     lib = native_build.load(SOURCE, extra_flags)
     if lib is not None and lib.composite_simd.argtypes is None:
-        lib.composite_simd.argtypes = _COMPOSITE_ARGS
-        lib.composite_simd.restype = ctypes.c_int
-        lib.culling_boxes.argtypes = _BOXES_ARGS
-        lib.culling_boxes.restype = None
+        _set_signatures(lib)
     return lib
+
+
+def _set_signatures(lib: ctypes.CDLL) -> None:
+    """Declare the kernel's C signatures (ctypes would otherwise guess int arguments)."""
+    lib.composite_simd.argtypes = _COMPOSITE_ARGS
+    lib.composite_simd.restype = ctypes.c_int
+    lib.culling_boxes.argtypes = _BOXES_ARGS
+    lib.culling_boxes.restype = None
 
 
 def why_unavailable() -> str | None:

@@ -121,3 +121,18 @@ def test_image_health_checks_match_compose() -> None:
             a for op, a in reversed(_instructions(DOCKER / f"{name}.Dockerfile")) if op == "CMD"
         )
         assert json.loads(cmd) == base["services"][name]["command"], name
+
+
+def test_api_image_ships_prebuilt_kernels() -> None:
+    # The runtime has no compiler: the SIMD kernel is prebuilt in the build stage and
+    # found through GLINT_NATIVE_PREBUILT (core/native_build.py).
+    ins = _instructions(DOCKER / "api.Dockerfile")
+    last = max(i for i, (op, _) in enumerate(ins) if op == "FROM")
+    build, runtime = ins[:last], ins[last:]
+    prebuild = "python -m core.native_build --prebuild /opt/venv/share/glint-native"
+    assert any(op == "RUN" and prebuild in a for op, a in build)
+    assert any(op == "RUN" and "gcc" in a for op, a in build)
+    assert any(
+        op == "ENV" and "GLINT_NATIVE_PREBUILT=/opt/venv/share/glint-native" in a
+        for op, a in runtime
+    )
