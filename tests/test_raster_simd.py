@@ -1,7 +1,8 @@
-"""The SIMD compositing kernel (gradient-free frames) against the reference and numba.
+"""The SIMD compositing kernels (forward, backward) against the reference and numba.
 
 The kernel's only intended difference from the exact kernels is its polynomial exp
-(about 2 float32 ulps), so outputs must agree to float32 rounding on random scenes
+(about 2 float32 ulps), so outputs and gradients must agree to float32 rounding on
+random scenes
 with the edge cases of test_raster_cpu: image sizes that are not tile multiples,
 Gaussians off-screen and behind the camera, needle-flat ones, the 0.99 clamp, early
 termination, degenerate conics and NaN inputs. Every vector width the source can
@@ -169,7 +170,7 @@ def test_thread_count_does_not_change_the_frame():
     assert np.array_equal(outs[0][0], outs[1][0]) and np.array_equal(outs[0][1], outs[1][1])
 
 
-def test_dispatch_takes_simd_only_without_gradients(monkeypatch):
+def test_dispatch_float32_to_simd_float64_to_numba(monkeypatch):
     calls = []
     real = cpu_simd.composite
     monkeypatch.setattr(cpu_simd, "composite", lambda *a, **k: (calls.append(1), real(*a, **k)))
@@ -178,11 +179,19 @@ def test_dispatch_takes_simd_only_without_gradients(monkeypatch):
     with torch.no_grad():
         r = rasterize(*scene, cam, backend="cpu")
     assert len(calls) == 1 and r.features.grad_fn is None
+    backs = []
+    real_back = cpu_simd.SimdComposite.backward
+    monkeypatch.setattr(
+        cpu_simd.SimdComposite, "backward", lambda *a: (backs.append(1), real_back(*a))[1]
+    )
     params = [t.clone().requires_grad_(True) for t in scene]
-    r = rasterize(*params, cam, backend="cpu")  # training: numba, with a backward
+    r = rasterize(*params, cam, backend="cpu")  # training: the SIMD pair, via autograd
     assert len(calls) == 1 and r.features.grad_fn is not None
-    r = rasterize(*[t.double() for t in scene], cam, backend="cpu")  # float64: numba
-    assert len(calls) == 1
+    r.features.sum().backward()
+    assert len(backs) == 1 and params[4].grad is not None
+    r = rasterize(*[t.double().requires_grad_() for t in scene], cam, backend="cpu")
+    r.features.sum().backward()  # float64: numba, both ways
+    assert len(calls) == 1 and len(backs) == 1
     with torch.no_grad():
         proj, op, feats, bins = _projected(scene, cam)
         with pytest.raises(RuntimeError, match="does not apply"):
@@ -269,3 +278,112 @@ def test_prebuilt_levels_give_the_same_frame(tmp_path):
         _assert_close((torch.from_numpy(out_feat), 1 - torch.from_numpy(out_T)), exact)
         ran += 1
     assert ran >= 1
+
+
+def _train(proj, op, feats, bins, w, h, simd, seed=3):
+    """Forward + backward of a weighted sum through the CPU composite alone."""
+    leaves = [t.detach().clone().requires_grad_(True) for t in (proj.means2d, proj.conics,
+                                                               op, feats)]  # fmt: skip
+    p = Projected(leaves[0], leaves[1], proj.depths, proj.radii, proj.cov2d)
+    f, a = rasterize_cpu(p, leaves[2], leaves[3], bins, w, h, simd=simd)
+    gen = torch.Generator().manual_seed(seed)
+    wf = torch.randn(f.shape, generator=gen)
+    wa = torch.randn(a.shape, generator=gen)
+    ((f * wf).sum() + (a * wa).sum()).backward()
+    return (f.detach(), a.detach()), [t.grad for t in leaves]
+
+
+def _assert_grads(got, want, rtol=1e-4, atol_rel=1e-5):
+    for name, g, r in zip(("means2d", "conics", "opacities", "features"), got, want, strict=True):
+        scale = max(float(r.abs().max()), 1.0)
+        torch.testing.assert_close(g, r, rtol=rtol, atol=atol_rel * scale,
+                                   msg=lambda m, n=name: f"{n}: {m}")  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("seed", "size", "channels", "flat", "opacity"),
+    [
+        (0, (37, 29), 3, False, (0.2, 0.9)),
+        (1, (32, 32), 1, True, (0.2, 0.9)),
+        (2, (50, 41), 9, True, (0.2, 0.9)),
+        (3, (45, 38), 17, False, (0.9, 1.0)),  # early termination and the 0.99 clamp
+    ],
+)
+def test_training_gradients_match_numba_and_reference(seed, size, channels, flat, opacity):
+    cam = _camera(*size)
+    scene = _scene(300, seed, channels, F32, flat=flat, opacity=opacity)
+    if opacity[0] > 0.5:
+        scene[2][:60] *= 4.0
+        scene[3][:60] = 1.0
+    proj, op, feats, bins = _projected(scene, cam)
+    out_s, g_s = _train(proj, op, feats, bins, *size, simd=True)
+    out_n, g_n = _train(proj, op, feats, bins, *size, simd=False)
+    _assert_close(out_s, out_n)
+    _assert_grads(g_s, g_n)
+    # and against the reference's autograd, in float64
+    leaves = [t.detach().double().requires_grad_(True) for t in (proj.means2d, proj.conics,
+                                                                op, feats)]  # fmt: skip
+    p = Projected(leaves[0], leaves[1], proj.depths, proj.radii, proj.cov2d)
+    f, a = rasterize_reference(p, leaves[2], leaves[3], bins, *size)
+    gen = torch.Generator().manual_seed(3)
+    wf = torch.randn(f.shape, generator=gen)
+    wa = torch.randn(a.shape, generator=gen)
+    ((f * wf.double()).sum() + (a * wa.double()).sum()).backward()
+    _assert_grads(g_s, [t.grad.float() for t in leaves], rtol=1e-3, atol_rel=1e-4)
+
+
+def test_training_backward_is_deterministic_across_threads():
+    cam = _camera(50, 38)
+    scene = _scene(300, 12, 4, F32, flat=True)
+    proj, op, feats, bins = _projected(scene, cam)
+    from core.kernel_pool import set_kernel_threads
+
+    set_kernel_threads(1)
+    out1, g1 = _train(proj, op, feats, bins, 50, 38, simd=True)
+    set_kernel_threads(3)
+    out3, g3 = _train(proj, op, feats, bins, 50, 38, simd=True)
+    assert torch.equal(out1[0], out3[0]) and torch.equal(out1[1], out3[1])
+    _assert_grads(g3, g1, rtol=1e-12, atol_rel=1e-12)
+
+
+def test_training_huge_opacity_and_nan_inputs_match_numba():
+    g = torch.Generator().manual_seed(17)
+    n, W, H = 50, 40, 30
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
+    k = torch.rand(n, generator=g) * 0.3 + 0.05
+    conics = torch.stack([k, (torch.rand(n, generator=g) - 0.5) * 0.02, k * 1.3], dim=-1)
+    op = torch.rand(n, generator=g) * 0.8 + 0.1
+    conics[0, 1] = 0.5  # saddle (no culling)
+    op[1], op[2] = 1e36, float("nan")
+    means2d[3, 1] = float("nan")
+    feats = torch.rand(n, 4, generator=g)
+    proj, op, feats, bins = _screen_space(means2d, conics, op, feats, W, H)
+    out_s, g_s = _train(proj, op, feats, bins, W, H, simd=True)
+    out_n, g_n = _train(proj, op, feats, bins, W, H, simd=False)
+    _assert_close(out_s, out_n)
+    for gs, gn in zip(g_s, g_n, strict=True):  # NaN inputs give NaN gradients alike
+        assert torch.equal(gs.isnan(), gn.isnan())
+    _assert_grads([t.nan_to_num() for t in g_s], [t.nan_to_num() for t in g_n])
+
+
+def test_training_clamp_decisions_match_numba():
+    # o · exp(power) within a few ulps of the 0.99 clamp at one pixel per Gaussian:
+    # a clamped pixel passes no gradient to o or the footprint, so a flipped decision
+    # would change those gradients by that pixel's whole share.
+    g = torch.Generator().manual_seed(8)
+    n, W, H = 120, 64, 48
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
+    k = torch.rand(n, generator=g) * 0.05 + 0.03
+    conics = torch.stack([k, torch.zeros(n), k], dim=-1)
+    # a pixel 6-9 px out, so that exp(power) is far from 1 where the vector exp and
+    # libm's differ (opacities above 1 are valid rasteriser inputs)
+    target = means2d.floor() + 0.5 + torch.randint(6, 10, (n, 2), generator=g)
+    d2 = ((target - means2d) ** 2).sum(-1).double()
+    rel = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1e-6
+    op = (0.99 * (1 + rel) / torch.exp(-0.5 * k.double() * d2)).float()
+    feats = torch.rand(n, 3, generator=g)
+    proj, op, feats, bins = _screen_space(means2d, conics, op, feats, W, H)
+    out_s, g_s = _train(proj, op, feats, bins, W, H, simd=True)
+    out_n, g_n = _train(proj, op, feats, bins, W, H, simd=False)
+    _assert_close(out_s, out_n)
+    _assert_grads(g_s, g_n)

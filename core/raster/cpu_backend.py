@@ -470,6 +470,7 @@ class CpuComposite(torch.autograd.Function):
         bins: TileBins,
         width: int,
         height: int,
+        simd: bool = False,
     ) -> tuple[Tensor, Tensor]:
         dtype = _compute_dtype(means2d, conics, opacities, features)
         n_ch = features.shape[1]
@@ -478,14 +479,20 @@ class CpuComposite(torch.autograd.Function):
         out_T = np.ones((height, width), npdt)
         out_last = np.zeros((height, width), np.int32)
         setup = None
+        kernel = None  # the SIMD kernel's state, which its backward reuses
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
             setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
-            args = (*setup.args(), out_feat, out_T, out_last)
-            run_workers(_forward_worker, kernel_threads(), args)
+            if simd:
+                kernel = cpu_simd.SimdComposite(setup.args(), width, height)
+                kernel.forward(kernel_threads(), out_feat, out_T, out_last)
+            else:
+                args = (*setup.args(), out_feat, out_T, out_last)
+                run_workers(_forward_worker, kernel_threads(), args)
         # The numpy arrays in ``setup`` may alias the inputs: saving the inputs makes
         # autograd refuse a backward after they were modified in place.
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.setup = setup
+        ctx.kernel = kernel
         ctx.meta = (dtype, width, height, n_ch)
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype, features.dtype)
         ctx.shapes = (means2d.shape, conics.shape, opacities.shape, features.shape)
@@ -514,10 +521,13 @@ class CpuComposite(torch.autograd.Function):
             else:
                 ga = _np(grad_alpha, dtype)
             n_workers = kernel_threads()
-            gbuf = np.zeros((n_workers, n, 6 + n_ch), np.float64)
-            args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
-            run_workers(_backward_worker, n_workers, args)
-            total = gbuf.sum(axis=0)
+            if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
+                total = ctx.kernel.backward(n_workers, out_T, out_last, gf, ga)
+            else:
+                gbuf = np.zeros((n_workers, n, 6 + n_ch), np.float64)
+                args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
+                run_workers(_backward_worker, n_workers, args)
+                total = gbuf.sum(axis=0)
         tot = torch.from_numpy(total)
         grads = (
             tot[:, _G_MX : _G_MY + 1],
@@ -531,7 +541,7 @@ class CpuComposite(torch.autograd.Function):
                 grads, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
             )
         ]
-        return (*out, None, None, None)
+        return (*out, None, None, None, None)
 
 
 def rasterize_cpu(
@@ -545,25 +555,20 @@ def rasterize_cpu(
 ) -> tuple[Tensor, Tensor]:
     """Composite projected Gaussians into (H, W, C) features and (H, W) alpha.
 
-    A gradient-free float32 call takes the SIMD kernel of ``core.raster.cpu_simd``
-    where it applies (``simd=None``); ``simd=False`` keeps the numba kernel,
-    ``simd=True`` insists on the SIMD one (tests, benchmarks).
+    float32 composites on 16-px tiles take the SIMD kernel of ``core.raster.cpu_simd``
+    where it is built (``simd=None``), forward and backward; ``simd=False`` keeps the
+    numba kernels, ``simd=True`` insists on the SIMD one (tests, benchmarks).
     """
-    use_simd = simd
-    if simd is None or simd:
-        ok = cpu_simd.applies(proj.means2d, proj.conics, opacities, features, bins.tile_size)
-        if simd and not ok:
-            why = cpu_simd.why_unavailable() or "it needs float32, 16-px tiles and no gradient"
-            raise RuntimeError(f"the SIMD compositing kernel does not apply here: {why}")
-        use_simd = ok
-    if use_simd:
-        feats, alpha = _composite_simd(
-            proj.means2d, proj.conics, opacities, features, bins, width, height
-        )
+    tensors = (proj.means2d, proj.conics, opacities, features)
+    use_simd = simd is not False and cpu_simd.supports(tensors, bins.tile_size)
+    if simd and not use_simd:
+        why = cpu_simd.why_unavailable() or "it needs float32 inputs and 16-px tiles"
+        raise RuntimeError(f"the SIMD compositing kernel does not apply here: {why}")
+    needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    if use_simd and not needs_grad:
+        feats, alpha = _composite_simd(*tensors, bins, width, height)
     else:
-        feats, alpha = CpuComposite.apply(
-            proj.means2d, proj.conics, opacities, features, bins, width, height
-        )
+        feats, alpha = CpuComposite.apply(*tensors, bins, width, height, use_simd)
     return feats.to(features.dtype), alpha.to(features.dtype)
 
 

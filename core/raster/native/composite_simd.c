@@ -1,20 +1,20 @@
-/* Gradient-free tile compositing, 16 pixels of a tile row at a time (SIMD).
+/* Tile compositing, 16 pixels of a tile row at a time (SIMD): forward and backward.
  *
- * Built at first use by core/raster/native_build.py with the system C compiler
- * (GCC or Clang vector extensions; no intrinsics, so any target works) and called
- * through ctypes by core/raster/cpu_simd.py. Same semantics as the numba forward of
- * core/raster/cpu_backend.py, float32 only:
+ * Built at first use by core/native_build.py with the system C compiler (GCC or
+ * Clang vector extensions) and called through ctypes by core/raster/cpu_simd.py.
+ * Same semantics as the numba kernels of core/raster/cpu_backend.py, float32 only:
  *
  *   front to back over each tile's depth-sorted list, alpha = min(0.99, o exp(power)),
  *   skipped when power > 0 or alpha < 1/255 (NaN included), a pixel stops before T
- *   would fall below 1e-4.
+ *   would fall below 1e-4; the backward walks back to front, 3DGS-style.
  *
- * Why it is fast: a tile row is one 16-lane vector. Per list entry and row, every
+ * Why it is fast: a tile row is one or a few vectors. Per list entry and row, every
  * lane is evaluated branch-free; lanes outside the Gaussian's ellipse get
  * alpha < 1/255 and change nothing. exp() is a vector polynomial (2^f fitted on
- * [-0.5, 0.5], relative error about 2 float32 ulps), the only difference from the exact kernel.
- * Rows whose pixels are all done are dropped from a 16-bit mask, so saturated rows
- * cost nothing.
+ * [-0.5, 0.5], about 2 float32 ulps); lanes near a decision (alpha at 1/255, o exp
+ * at the 0.99 clamp) take libm's expf, and the power is computed operation for
+ * operation as numba does (the build fuses no multiply-add), so every decision is
+ * numba's. Rows whose pixels are all done drop out of a 16-bit mask.
  */
 #include <math.h>
 #include <stdint.h>
@@ -92,10 +92,34 @@ static inline int any_lane(vi m) {
 #endif
 }
 
-/* Alpha of one lane with libm's expf, as the numba kernel computes it. */
-static inline float exact_alpha(float power, float o, float a_max) {
-    const float alpha = o * expf(power);
-    return alpha > a_max ? a_max : alpha;
+/* Alphas of a row vector from its powers: min(a_max, o exp(power)), NaN where the
+ * power is positive or NaN (the pixel is skipped). *G_out gets exp(power) and
+ * *clamped the lanes where o exp(power) > a_max (no gradient to o or the footprint).
+ * p_floor: see exp_floor (NaN: libm throughout). */
+static inline vf row_alpha(vf power, float o, float p_floor, float a_min, float a_max,
+                           vf *G_out, vi *clamped) {
+    const vf zero = (vf){0};
+    vf G;
+    if (p_floor == p_floor) {
+        G = exp_nonpos(sel(power > 0.0f, zero, power), p_floor);
+    } else { /* huge or infinite opacity: libm, lane by lane */
+        for (int l = 0; l < VW; l++) G[l] = expf(power[l]);
+    }
+    vf raw = o * G;
+    /* lanes this close to a decision take libm's expf, as numba's kernel */
+    const vi near = ((raw > a_min * (1.0f - 2e-5f)) & (raw < a_min * (1.0f + 2e-5f))) |
+                    ((raw > a_max * (1.0f - 2e-5f)) & (raw < a_max * (1.0f + 2e-5f)));
+    if (any_lane(near)) {
+        for (int l = 0; l < VW; l++)
+            if (near[l]) {
+                G[l] = expf(power[l]);
+                raw[l] = o * G[l];
+            }
+    }
+    *G_out = G;
+    *clamped = raw > a_max;
+    const vf alpha = min_keep_nan(raw, zero + a_max);
+    return sel(power <= 0.0f, alpha, zero + NAN);
 }
 
 static inline double clamp_d(double v, double lo, double hi) {
@@ -144,24 +168,26 @@ void culling_boxes(int64_t lo, int64_t hi, const float *means2d, const float *op
     }
 }
 
-/* Composite tiles w, w + n_workers, ... into out_feat (H, W, C) and out_T (H, W).
- * means2d (N, 2), conics (N, 3), opac (N), feats (N, C) float32; ids/offsets the
- * tile lists; box (N, 4) and floors (N) from culling_boxes; consts = (0.5, 1, ALPHA_MIN, ALPHA_MAX, T_MIN). Returns 0, or -1 when out of memory. */
+/* Composite tiles w, w + n_workers, ... into out_feat (H, W, C), out_T (H, W) and,
+ * unless NULL, out_last (H, W): the count of list entries up to the pixel's last
+ * contributing one, which the backward starts from. means2d (N, 2), conics (N, 3),
+ * opac (N), feats (N, C) float32; ids/offsets the tile lists; box (N, 4) and floors
+ * (N) from culling_boxes; consts = (0.5, 1, ALPHA_MIN, ALPHA_MAX, T_MIN). Returns 0,
+ * or -1 when out of memory. */
 int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const float *conics,
                    const float *opac, const float *feats, int64_t n_ch, const int64_t *ids,
                    const int64_t *offsets, int64_t n_tiles, int64_t tiles_x, int64_t width,
                    int64_t height, const int32_t *box, const float *floors, const float *consts,
-                   float *out_feat, float *out_T) {
+                   float *out_feat, float *out_T, int32_t *out_last) {
     const float a_min = consts[2], a_max = consts[3], t_min = consts[4];
     const vf zero = (vf){0}, one = zero + 1.0f;
-    /* alphas this close to 1/255 are recomputed exactly (the vector exp is 2 ulps off) */
-    const vf near_lo = zero + a_min * (1.0f - 2e-5f), near_hi = zero + a_min * (1.0f + 2e-5f);
     const vi none = (vi){0};
     vf lane[NV];
     for (int v = 0; v < NV; v++)
         for (int l = 0; l < VW; l++) lane[v][l] = (float)(v * VW + l) + 0.5f;
     vf T[TS][NV];
     vi live[TS][NV]; /* -1 while the pixel composites */
+    vi last[TS][NV];
     vf *F = NULL;    /* [row][channel][NV] */
     if (n_ch > 0 && posix_memalign((void **)&F, 64, sizeof(vf) * TS * NV * (size_t)n_ch) != 0)
         return -1;
@@ -177,6 +203,7 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
             for (int v = 0; v < NV; v++) {
                 T[r][v] = one;
                 live[r][v] = r < ny ? (lane[v] < (float)nx) : none;
+                last[r][v] = none;
             }
             if (r < ny) rows_alive |= 1u << r;
         }
@@ -220,19 +247,9 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
                     /* operation for operation the numba kernel's power (the build
                      * fuses no multiply-add): flat Gaussians cancel large terms */
                     const vf power = -0.5f * (adx[v] + cdy) - bdx[v] * dy;
-                    vf alpha;
-                    if (p_floor == p_floor) {
-                        alpha = o * exp_nonpos(sel(power > 0.0f, zero, power), p_floor);
-                    } else { /* huge or infinite opacity: libm, lane by lane */
-                        for (int l = 0; l < VW; l++) alpha[l] = o * expf(power[l]);
-                    }
-                    alpha = min_keep_nan(alpha, zero + a_max);
-                    alpha = sel(power <= 0.0f, alpha, zero + NAN);
-                    const vi near = (alpha > near_lo) & (alpha < near_hi);
-                    if (any_lane(near)) {
-                        for (int l = 0; l < VW; l++)
-                            if (near[l]) alpha[l] = exact_alpha(power[l], o, a_max);
-                    }
+                    vf G;
+                    vi clamped;
+                    const vf alpha = row_alpha(power, o, p_floor, a_min, a_max, &G, &clamped);
                     const vi ok = (alpha >= a_min) & live[r][v];
                     const vf Tv = T[r][v];
                     const vf test = Tv * (1.0f - alpha);
@@ -241,6 +258,7 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
                     wgt[v] = sel(take, alpha * Tv, zero);
                     T[r][v] = sel(take, test, Tv);
                     live[r][v] &= ~fin;
+                    last[r][v] = (take & (none + (int32_t)(i - lo + 1))) | (~take & last[r][v]);
                 }
                 vf *F_r = F + (int64_t)r * n_ch * NV;
                 for (int64_t ch = 0; ch < n_ch; ch++)
@@ -253,11 +271,194 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
                 const int64_t px = x0 + l;
                 const int v = l / VW, k = l % VW;
                 out_T[py * width + px] = T[r][v][k];
+                if (out_last) out_last[py * width + px] = last[r][v][k];
                 float *dst = out_feat + (py * width + px) * n_ch;
                 for (int64_t ch = 0; ch < n_ch; ch++) dst[ch] = F[(r * n_ch + ch) * NV + v][k];
             }
         }
     }
     free(F);
+    return 0;
+}
+
+/* ---- backward ------------------------------------------------------------------ */
+
+/* The backward keeps its running state in float64, as the numba kernel: a tile row
+ * is NVD vectors of VDW doubles, each half of a float vector. */
+#define VDW (VW / 2)
+#define NVD (TS / VDW)
+typedef double vd __attribute__((vector_size(VDW * 8)));
+typedef int64_t vl __attribute__((vector_size(VDW * 8)));
+
+static inline vd seld(vl m, vd a, vd b) { return (vd)((m & (vl)a) | (~m & (vl)b)); }
+
+static inline vd half_d(vf x, int h) {
+    vd r;
+    for (int l = 0; l < VDW; l++) r[l] = (double)x[h * VDW + l];
+    return r;
+}
+
+static inline vl half_mask(vi m, int h) {
+    vl r;
+    for (int l = 0; l < VDW; l++) r[l] = (int64_t)m[h * VDW + l];
+    return r;
+}
+
+static inline double hsum(vd x) {
+    double s = 0.0;
+    for (int l = 0; l < VDW; l++) s += x[l];
+    return s;
+}
+
+/* Gradients of tiles w, w + n_workers, ..., back to front, added into
+ * gbuf[w, g, :] = (d means2d (2), d conic (3), d opacity, d features (C)), float64,
+ * gbuf of shape (n_workers, N, 6 + C). final_T, last: the forward's outputs;
+ * grad_feat (H, W, C), grad_alpha (H, W): the incoming gradients. With T_before =
+ * T_after / (1 - alpha) and R the suffix sum of alpha_k T_k (g . f_k):
+ *   dL/dalpha = T_before (g . f) - R / (1 - alpha) + g_alpha T_final / (1 - alpha).
+ * Returns 0, or -1 when out of memory. */
+int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
+                            const float *conics, const float *opac, const float *feats,
+                            int64_t n_ch, const int64_t *ids, const int64_t *offsets,
+                            int64_t n_tiles, int64_t tiles_x, int64_t width, int64_t height,
+                            const int32_t *box, const float *floors, const float *consts,
+                            const float *final_T, const int32_t *last, const float *grad_feat,
+                            const float *grad_alpha, int64_t n_gauss, double *gbuf) {
+    const float a_min = consts[2], a_max = consts[3];
+    const vd zd = (vd){0};
+    vf lane[NV];
+    for (int v = 0; v < NV; v++)
+        for (int l = 0; l < VW; l++) lane[v][l] = (float)(v * VW + l) + 0.5f;
+    vd Tc[TS][NVD], R[TS][NVD], gaT[TS][NVD], lastd[TS][NVD];
+    int32_t row_last[TS];
+    vd *Gt = NULL, *acc_f = NULL; /* dL/dfeatures per pixel [row][ch][NVD]; per channel */
+    double *f64 = NULL;
+    const size_t nc = n_ch > 0 ? (size_t)n_ch : 1;
+    if (posix_memalign((void **)&Gt, 64, sizeof(vd) * TS * NVD * nc) != 0 ||
+        posix_memalign((void **)&acc_f, 64, sizeof(vd) * nc) != 0 ||
+        (f64 = malloc(sizeof(double) * nc)) == NULL) {
+        free(Gt);
+        free(acc_f);
+        return -1;
+    }
+    double *gb = gbuf + (size_t)w * (size_t)n_gauss * (size_t)(6 + n_ch);
+    for (int64_t t = w; t < n_tiles; t += n_workers) {
+        const int64_t lo = offsets[t], hi = offsets[t + 1];
+        if (hi == lo) continue;
+        const int64_t x0 = (t % tiles_x) * TS, y0 = (t / tiles_x) * TS;
+        const int64_t x1 = x0 + TS < width ? x0 + TS : width;
+        const int64_t y1 = y0 + TS < height ? y0 + TS : height;
+        const int nx = (int)(x1 - x0), ny = (int)(y1 - y0);
+        int32_t n_last = 0;
+        for (int r = 0; r < TS; r++) {
+            row_last[r] = 0;
+            for (int l = 0; l < TS; l++) {
+                const int j = l / VDW, k = l % VDW;
+                if (r < ny && l < nx) {
+                    const int64_t p = (y0 + r) * width + (x0 + l);
+                    const double Tf = (double)final_T[p];
+                    Tc[r][j][k] = Tf;
+                    gaT[r][j][k] = (double)grad_alpha[p] * Tf;
+                    lastd[r][j][k] = (double)last[p];
+                    for (int64_t ch = 0; ch < n_ch; ch++)
+                        Gt[((int64_t)r * n_ch + ch) * NVD + j][k] = (double)grad_feat[p * n_ch + ch];
+                    if (last[p] > row_last[r]) row_last[r] = last[p];
+                } else { /* outside the image: never contributes */
+                    Tc[r][j][k] = 1.0;
+                    gaT[r][j][k] = 0.0;
+                    lastd[r][j][k] = 0.0;
+                    for (int64_t ch = 0; ch < n_ch; ch++) Gt[((int64_t)r * n_ch + ch) * NVD + j][k] = 0.0;
+                }
+                R[r][j][k] = 0.0;
+            }
+            if (row_last[r] > n_last) n_last = row_last[r];
+        }
+        if (n_last > hi - lo) n_last = (int32_t)(hi - lo); /* a corrupt count reads no further */
+        for (int64_t i = lo + n_last - 1; i >= lo; i--) {
+            const int32_t kk = (int32_t)(i - lo);
+            const int64_t g = ids[i];
+            const int32_t *bx = box + 4 * g;
+            const int64_t c0 = bx[0] > x0 ? bx[0] : x0, c1 = bx[1] < x1 ? bx[1] : x1;
+            if (c0 >= c1) continue;
+            const int64_t r0 = bx[2] > y0 ? bx[2] : y0, r1 = bx[3] < y1 ? bx[3] : y1;
+            if (r0 >= r1) continue;
+            uint32_t rows = 0;
+            for (int64_t r = r0 - y0; r < r1 - y0; r++)
+                if (kk < row_last[r]) rows |= 1u << r;
+            if (!rows) continue;
+            const float mx = means2d[2 * g], my = means2d[2 * g + 1];
+            const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
+            const float o = opac[g], p_floor = floors[g];
+            const double ad = a, bd = b, cd = c;
+            for (int64_t ch = 0; ch < n_ch; ch++) {
+                f64[ch] = (double)feats[g * n_ch + ch];
+                acc_f[ch] = zd;
+            }
+            vd s_mx = zd, s_my = zd, s_a = zd, s_b = zd, s_c = zd, s_o = zd;
+            const vd kd = zd + (double)kk;
+            vf dx[NV], adx[NV], bdx[NV];
+            for (int v = 0; v < NV; v++) {
+                dx[v] = ((float)x0 + lane[v]) - mx;
+                adx[v] = a * dx[v] * dx[v];
+                bdx[v] = b * dx[v];
+            }
+            int touched = 0;
+            for (; rows; rows &= rows - 1u) {
+                const int r = __builtin_ctz(rows);
+                const float dy = ((float)(y0 + r) + 0.5f) - my;
+                const float cdy = c * dy * dy;
+                const double dyd = dy;
+                for (int v = 0; v < NV; v++) {
+                    const vf power = -0.5f * (adx[v] + cdy) - bdx[v] * dy;
+                    vf G;
+                    vi clamped;
+                    const vf alpha = row_alpha(power, o, p_floor, a_min, a_max, &G, &clamped);
+                    const vi ok = alpha >= a_min;
+                    for (int h = 0; h < 2; h++) {
+                        const int j = v * 2 + h;
+                        const vl m = half_mask(ok, h) & (kd < lastd[r][j]);
+                        if (!any_lane((vi)m)) continue;
+                        touched = 1;
+                        const vd al = seld(m, half_d(alpha, h), zd);
+                        const vd one_m = 1.0 - al;
+                        const vd Tb = Tc[r][j] / one_m;
+                        const vd wgt = al * Tb;
+                        vd gf = zd;
+                        const vd *Gr = Gt + (int64_t)r * n_ch * NVD + j;
+                        for (int64_t ch = 0; ch < n_ch; ch++) {
+                            const vd gc = Gr[ch * NVD];
+                            gf += gc * f64[ch];
+                            acc_f[ch] += wgt * gc;
+                        }
+                        const vd d_alpha = Tb * gf + (gaT[r][j] - R[r][j]) / one_m;
+                        R[r][j] += wgt * gf;
+                        Tc[r][j] = Tb;
+                        const vl mc = m & ~half_mask(clamped, h);
+                        const vd d_pow = seld(mc, al * d_alpha, zd);
+                        const vd dxd = half_d(dx[v], h);
+                        s_mx += (ad * dxd + bd * dyd) * d_pow;
+                        s_my += (cd * dyd + bd * dxd) * d_pow;
+                        s_a -= 0.5 * dxd * dxd * d_pow;
+                        s_b -= dxd * dyd * d_pow;
+                        s_c -= 0.5 * dyd * dyd * d_pow;
+                        s_o += seld(mc, half_d(G, h) * d_alpha, zd);
+                    }
+                }
+            }
+            if (touched) {
+                double *out = gb + (size_t)g * (size_t)(6 + n_ch);
+                out[0] += hsum(s_mx);
+                out[1] += hsum(s_my);
+                out[2] += hsum(s_a);
+                out[3] += hsum(s_b);
+                out[4] += hsum(s_c);
+                out[5] += hsum(s_o);
+                for (int64_t ch = 0; ch < n_ch; ch++) out[6 + ch] += hsum(acc_f[ch]);
+            }
+        }
+    }
+    free(Gt);
+    free(acc_f);
+    free(f64);
     return 0;
 }
