@@ -67,6 +67,23 @@ class Settings(BaseSettings):
         description="threads of the compiled CPU rasteriser kernels (training, viewer "
         "renders); torch's own ops run on one. None: every CPU the process may use",
     )
+    # Read by core.native_build from the environment (as kernel_threads by core.threads);
+    # fields here so that a deployment's values are validated and documented.
+    native: bool = Field(
+        True,
+        description="use the SIMD C compositing kernel where it builds or is prebuilt; "
+        "false keeps the numba kernels",
+    )
+    native_cache: Path | None = Field(
+        None,
+        description="where kernels built at first use are cached; None: "
+        "$XDG_CACHE_HOME/glint/native or ~/.cache/glint/native",
+    )
+    native_prebuilt: Path | None = Field(
+        None,
+        description="directory of kernels prebuilt by `python -m core.native_build "
+        "--prebuild DIR` (the API image sets it); tried before compiling",
+    )
 
     auth_cache_s: float = Field(
         5.0,

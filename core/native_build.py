@@ -180,8 +180,11 @@ def _compile(
     return "; ".join(errors)
 
 
+_FALSE = ("0", "f", "false", "n", "no", "off")  # as pydantic reads GLINT_NATIVE
+
+
 def _disabled() -> bool:
-    return os.environ.get("GLINT_NATIVE", "1").strip().lower() in ("0", "false", "no", "off")
+    return os.environ.get("GLINT_NATIVE", "1").strip().lower() in _FALSE
 
 
 def load(source: Path, extra_flags: tuple[str, ...] = ()) -> ctypes.CDLL | None:
