@@ -1,5 +1,10 @@
 """Compiled CPU compositing backend ("cpu"): numba kernels, forward and backward.
 
+float32 composites on 16-px tiles go to the SIMD C kernels of ``core.raster.cpu_simd``
+where they are built (same decisions, vector arithmetic); these numba kernels are
+the rest (float64, other tile sizes, machines without a compiler or prebuilt
+kernel) and the exact kernels the SIMD ones are tested against.
+
 Same semantics as ``core.raster.reference`` (the oracle), tile by tile:
 front-to-back over each tile's depth-sorted Gaussians, alpha = min(0.99, o·exp(power))
 skipped below 1/255 or when power > 0, stopping before T would fall below 1e-4.
