@@ -3,8 +3,11 @@
     python -m bench.raster                 # the default cases, a Markdown table
     python -m bench.raster --backends reference cpu --sizes 128:20000
     python -m bench.raster --backends cpu --sizes 512:100000 --breakdown --threads 2
+    python -m bench.raster --backends cpu --sizes 128:20000 --threads 2 --split-threads
 
-Each case runs in its own process so peak RSS is that case's alone. ``--breakdown``
+Each case runs in its own process so peak RSS is that case's alone. ``--split-threads``
+runs the way every ``glint`` command does (torch on one thread, the kernels on
+``--threads``); without it torch and the kernels share ``--threads``. ``--breakdown``
 adds a second table that splits a forward into projection, tile binning (shared by
 all backends) and compositing, and times the compositing's forward+backward alone.
 """
@@ -24,6 +27,7 @@ from bench.common import (
     random_gaussians,
     run_isolated,
 )
+from core.kernel_pool import kernel_threads
 from core.raster import (
     BACKENDS,
     PROJECTORS,
@@ -79,7 +83,11 @@ def breakdown(case: dict, cam, means, quats, scales, opac, feats) -> dict:
 def run_case(case: dict) -> dict:
     size, n, backend = case["size"], case["n"], case["backend"]
     channels = case.get("channels", 8)
-    if case.get("threads"):
+    if case.get("split_threads"):
+        from core.threads import configure_cpu_threads
+
+        configure_cpu_threads(case.get("threads") or None)
+    elif case.get("threads"):
         torch.set_num_threads(case["threads"])
     cam = bench_camera(size)
     means, quats, scales, opac, feats = random_gaussians(n, channels=channels)
@@ -104,6 +112,7 @@ def run_case(case: dict) -> dict:
         **case,
         **extra,
         "threads_used": torch.get_num_threads(),
+        "kernel_threads_used": kernel_threads(),
         "forward_ms": t_f * 1e3,
         "forward_backward_ms": t_fb * 1e3,
         "peak_rss_mib": peak_rss_mib(),
@@ -122,6 +131,12 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--no-backward", action="store_true")
     ap.add_argument("--threads", type=int, default=0, help="torch threads (0: torch's default)")
+    ap.add_argument(
+        "--split-threads",
+        action="store_true",
+        help="Glint's process layout (core.threads): torch on one thread, the compiled "
+        "kernels on --threads (default: every usable CPU)",
+    )
     ap.add_argument(
         "--breakdown", action="store_true", help="also time projection/binning/compositing"
     )
@@ -142,11 +157,15 @@ def main(argv: list[str] | None = None) -> None:
                 "repeat": args.repeat,
                 "backward": not args.no_backward,
                 "threads": args.threads,
+                "split_threads": args.split_threads,
                 "breakdown": args.breakdown,
             }
             rows.append(run_isolated("bench.raster", case))
-    threads = next((r["threads_used"] for r in rows if "threads_used" in r), None)
-    print(f"Machine: {machine_line()}; cases ran with {threads} torch threads\n")
+    used = next((r for r in rows if "threads_used" in r), {})
+    print(
+        f"Machine: {machine_line()}; cases ran with {used.get('threads_used')} torch threads, "
+        f"{used.get('kernel_threads_used')} kernel threads\n"
+    )
     cols = ["backend", "image", "Gaussians", "channels", "forward ms", "fwd+bwd ms"]
     cols += ["peak RSS MiB", "RSS growth MiB", "mean alpha"]
     print("| " + " | ".join(cols) + " |")
