@@ -218,21 +218,28 @@ def _screen_space(means2d, conics, op, feats, w, h):
     return Projected(means2d, conics, depths, radii, torch.zeros(n, 2, 2)), op, feats, bins
 
 
+def _tuned(seed, n, k_lo, k_span, offsets, value, channels):
+    """Isotropic Gaussians whose o·exp(power) at one pixel each (offset by ``offsets``
+    from the centre's pixel) lies within ±5e-7 relative of ``value``."""
+    g = torch.Generator().manual_seed(seed)
+    W, H = 64, 48
+    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
+    k = torch.rand(n, generator=g) * k_span + k_lo
+    conics = torch.stack([k, torch.zeros(n), k], dim=-1)
+    target = means2d.floor() + 0.5 + torch.randint(*offsets, (n, 2), generator=g)
+    d2 = ((target - means2d) ** 2).sum(-1).double()
+    rel = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1e-6
+    op = (value * (1 + rel) / torch.exp(-0.5 * k.double() * d2)).float()
+    feats = torch.rand(n, channels, generator=g) + 0.5
+    return (*_screen_space(means2d, conics, op, feats, W, H), W, H)
+
+
 def test_alphas_at_the_cutoff_decide_as_the_exact_kernel():
     # Each Gaussian's opacity puts one pixel's alpha within a few ulps of 1/255, where
     # the vector exp (2 ulps off) alone could decide differently: a whole 1/255 of
     # colour. Such lanes take libm's expf, so every decision matches numba's.
-    g = torch.Generator().manual_seed(5)
-    n, W, H = 400, 64, 48
-    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
-    k = torch.rand(n, generator=g) * 0.2 + 0.05
-    conics = torch.stack([k, torch.zeros(n), k], dim=-1)
-    target = means2d.floor() + 0.5 + torch.randint(-3, 4, (n, 2), generator=g)
-    d2 = ((target - means2d) ** 2).sum(-1).double()
-    rel = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1e-6
-    op = ((1 / 255) * (1 + rel) / torch.exp(-0.5 * k.double() * d2)).float()
-    feats = torch.rand(n, 3, generator=g) + 0.5
-    simd, exact, ref = _all_three(*_screen_space(means2d, conics, op, feats, W, H), W, H)
+    *scene, W, H = _tuned(5, 400, 0.05, 0.2, (-3, 4), 1 / 255, 3)
+    simd, exact, ref = _all_three(*scene, W, H)
     _assert_close(simd, exact)
     _assert_close(simd, ref, tol=1e-5)
 
@@ -369,21 +376,11 @@ def test_training_huge_opacity_and_nan_inputs_match_numba():
 def test_training_clamp_decisions_match_numba():
     # o · exp(power) within a few ulps of the 0.99 clamp at one pixel per Gaussian:
     # a clamped pixel passes no gradient to o or the footprint, so a flipped decision
-    # would change those gradients by that pixel's whole share.
-    g = torch.Generator().manual_seed(8)
-    n, W, H = 120, 64, 48
-    means2d = torch.rand(n, 2, generator=g) * torch.tensor([W, H], dtype=F32)
-    k = torch.rand(n, generator=g) * 0.05 + 0.03
-    conics = torch.stack([k, torch.zeros(n), k], dim=-1)
-    # a pixel 6-9 px out, so that exp(power) is far from 1 where the vector exp and
-    # libm's differ (opacities above 1 are valid rasteriser inputs)
-    target = means2d.floor() + 0.5 + torch.randint(6, 10, (n, 2), generator=g)
-    d2 = ((target - means2d) ** 2).sum(-1).double()
-    rel = (torch.rand(n, generator=g, dtype=torch.float64) - 0.5) * 1e-6
-    op = (0.99 * (1 + rel) / torch.exp(-0.5 * k.double() * d2)).float()
-    feats = torch.rand(n, 3, generator=g)
-    proj, op, feats, bins = _screen_space(means2d, conics, op, feats, W, H)
-    out_s, g_s = _train(proj, op, feats, bins, W, H, simd=True)
-    out_n, g_n = _train(proj, op, feats, bins, W, H, simd=False)
+    # would change those gradients by that pixel's whole share. The pixel is 6-9 px
+    # out, so that exp(power) is far from 1 where the vector exp and libm's differ
+    # (opacities above 1 are valid rasteriser inputs).
+    *scene, W, H = _tuned(8, 120, 0.03, 0.05, (6, 10), 0.99, 3)
+    out_s, g_s = _train(*scene, W, H, simd=True)
+    out_n, g_n = _train(*scene, W, H, simd=False)
     _assert_close(out_s, out_n)
     _assert_grads(g_s, g_n)

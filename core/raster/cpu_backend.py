@@ -53,7 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.kernel_pool import kernel_threads, run_ranges, run_workers
+from core.kernel_pool import kernel_threads, run_ranges, run_workers, zeros_touched
 from core.raster import cpu_simd
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
@@ -480,9 +480,9 @@ class CpuComposite(torch.autograd.Function):
         dtype = _compute_dtype(means2d, conics, opacities, features)
         n_ch = features.shape[1]
         npdt = np.float32 if dtype == torch.float32 else np.float64
-        out_feat = np.zeros((height, width, n_ch), npdt)
+        out_feat = zeros_touched((height, width, n_ch), npdt)
         out_T = np.ones((height, width), npdt)
-        out_last = np.zeros((height, width), np.int32)
+        out_last = zeros_touched((height, width), np.int32)
         setup = None
         kernel = None  # the SIMD kernel's state, which its backward reuses
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
@@ -529,7 +529,7 @@ class CpuComposite(torch.autograd.Function):
             if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
                 total = ctx.kernel.backward(n_workers, out_T, out_last, gf, ga)
             else:
-                gbuf = np.zeros((n_workers, n, 6 + n_ch), np.float64)
+                gbuf = zeros_touched((n_workers, n, 6 + n_ch), np.float64)
                 args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
                 run_workers(_backward_worker, n_workers, args)
                 total = gbuf.sum(axis=0)
@@ -587,7 +587,7 @@ def _composite_simd(
     height: int,
 ) -> tuple[Tensor, Tensor]:
     n_ch = features.shape[1]
-    out_feat = np.zeros((height, width, n_ch), np.float32)
+    out_feat = zeros_touched((height, width, n_ch), np.float32)
     out_T = np.ones((height, width), np.float32)
     if bins.gauss_ids.numel() > 0 and n_ch > 0:
         setup = _Setup(means2d, conics, opacities, features, bins, width, height, torch.float32)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from core import native_build
-from core.kernel_pool import run_ranges, run_workers
+from core.kernel_pool import run_ranges, run_workers, zeros_touched
 
 __all__ = ["SOURCE", "TILE", "SimdComposite", "composite", "library", "why_unavailable"]
 
@@ -152,7 +152,7 @@ class SimdComposite:
                               ("grad_feat", grad_feat, np.float32),
                               ("grad_alpha", grad_alpha, np.float32)):  # fmt: skip
             _check(name, arr, dt)
-        gbuf = np.zeros((n_workers, self.n, 6 + self.n_ch), np.float64)
+        gbuf = zeros_touched((n_workers, self.n, 6 + self.n_ch), np.float64)
         tail = tuple(a.ctypes.data for a in (final_T, last, grad_feat, grad_alpha))
         self._run(self.lib.composite_simd_backward, n_workers,
                   (*tail, self.n, gbuf.ctypes.data))  # fmt: skip

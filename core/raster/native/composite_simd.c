@@ -168,6 +168,43 @@ void culling_boxes(int64_t lo, int64_t hi, const float *means2d, const float *op
     }
 }
 
+/* A tile's pixel bounds [x0, x1) x [y0, y1), clipped to the image. */
+typedef struct {
+    int64_t x0, y0, x1, y1;
+    int nx, ny;
+} Tile;
+
+static inline Tile tile_at(int64_t t, int64_t tiles_x, int64_t width, int64_t height) {
+    Tile tl;
+    tl.x0 = (t % tiles_x) * TS;
+    tl.y0 = (t / tiles_x) * TS;
+    tl.x1 = tl.x0 + TS < width ? tl.x0 + TS : width;
+    tl.y1 = tl.y0 + TS < height ? tl.y0 + TS : height;
+    tl.nx = (int)(tl.x1 - tl.x0);
+    tl.ny = (int)(tl.y1 - tl.y0);
+    return tl;
+}
+
+/* The tile rows (bit r = row y0 + r) a Gaussian's pixel box covers; 0 when the box
+ * misses the tile. */
+static inline uint32_t box_rows(const int32_t *bx, Tile tl) {
+    const int64_t c0 = bx[0] > tl.x0 ? bx[0] : tl.x0, c1 = bx[1] < tl.x1 ? bx[1] : tl.x1;
+    const int64_t r0 = bx[2] > tl.y0 ? bx[2] : tl.y0, r1 = bx[3] < tl.y1 ? bx[3] : tl.y1;
+    if (c0 >= c1 || r0 >= r1) return 0;
+    return ((1u << (r1 - tl.y0)) - 1u) & ~((1u << (r0 - tl.y0)) - 1u);
+}
+
+/* Per-lane terms of a Gaussian's power that do not depend on the row: dx, a dx²,
+ * b dx (the numba kernel's operation order). */
+static inline void lane_terms(const vf lane[NV], int64_t x0, float mx, float a, float b,
+                              vf dx[NV], vf adx[NV], vf bdx[NV]) {
+    for (int v = 0; v < NV; v++) {
+        dx[v] = ((float)x0 + lane[v]) - mx;
+        adx[v] = a * dx[v] * dx[v];
+        bdx[v] = b * dx[v];
+    }
+}
+
 /* Composite tiles w, w + n_workers, ... into out_feat (H, W, C), out_T (H, W) and,
  * unless NULL, out_last (H, W): the count of list entries up to the pixel's last
  * contributing one, which the backward starts from. means2d (N, 2), conics (N, 3),
@@ -194,10 +231,9 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
     for (int64_t t = w; t < n_tiles; t += n_workers) {
         const int64_t lo = offsets[t], hi = offsets[t + 1];
         if (hi == lo) continue;
-        const int64_t x0 = (t % tiles_x) * TS, y0 = (t / tiles_x) * TS;
-        const int64_t x1 = x0 + TS < width ? x0 + TS : width;
-        const int64_t y1 = y0 + TS < height ? y0 + TS : height;
-        const int nx = (int)(x1 - x0), ny = (int)(y1 - y0);
+        const Tile tl = tile_at(t, tiles_x, width, height);
+        const int64_t x0 = tl.x0, y0 = tl.y0;
+        const int nx = tl.nx, ny = tl.ny;
         uint32_t rows_alive = 0;
         for (int r = 0; r < TS; r++) {
             for (int v = 0; v < NV; v++) {
@@ -221,23 +257,14 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
                 }
             }
             const int64_t g = ids[i];
-            const int32_t *bx = box + 4 * g;
-            const int64_t c0 = bx[0] > x0 ? bx[0] : x0, c1 = bx[1] < x1 ? bx[1] : x1;
-            if (c0 >= c1) continue;
-            const int64_t r0 = bx[2] > y0 ? bx[2] : y0, r1 = bx[3] < y1 ? bx[3] : y1;
-            if (r0 >= r1) continue;
-            uint32_t rows = rows_alive & (((1u << (r1 - y0)) - 1u) & ~((1u << (r0 - y0)) - 1u));
+            uint32_t rows = rows_alive & box_rows(box + 4 * g, tl);
             if (!rows) continue;
             const float mx = means2d[2 * g], my = means2d[2 * g + 1];
             const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
             const float o = opac[g], p_floor = floors[g];
             const float *f_g = feats + g * n_ch;
             vf dx[NV], adx[NV], bdx[NV];
-            for (int v = 0; v < NV; v++) {
-                dx[v] = ((float)x0 + lane[v]) - mx;
-                adx[v] = a * dx[v] * dx[v];
-                bdx[v] = b * dx[v];
-            }
+            lane_terms(lane, x0, mx, a, b, dx, adx, bdx);
             for (; rows; rows &= rows - 1u) {
                 const int r = __builtin_ctz(rows);
                 const float dy = ((float)(y0 + r) + 0.5f) - my;
@@ -345,10 +372,9 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
     for (int64_t t = w; t < n_tiles; t += n_workers) {
         const int64_t lo = offsets[t], hi = offsets[t + 1];
         if (hi == lo) continue;
-        const int64_t x0 = (t % tiles_x) * TS, y0 = (t / tiles_x) * TS;
-        const int64_t x1 = x0 + TS < width ? x0 + TS : width;
-        const int64_t y1 = y0 + TS < height ? y0 + TS : height;
-        const int nx = (int)(x1 - x0), ny = (int)(y1 - y0);
+        const Tile tl = tile_at(t, tiles_x, width, height);
+        const int64_t x0 = tl.x0, y0 = tl.y0;
+        const int nx = tl.nx, ny = tl.ny;
         int32_t n_last = 0;
         for (int r = 0; r < TS; r++) {
             row_last[r] = 0;
@@ -377,14 +403,9 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
         for (int64_t i = lo + n_last - 1; i >= lo; i--) {
             const int32_t kk = (int32_t)(i - lo);
             const int64_t g = ids[i];
-            const int32_t *bx = box + 4 * g;
-            const int64_t c0 = bx[0] > x0 ? bx[0] : x0, c1 = bx[1] < x1 ? bx[1] : x1;
-            if (c0 >= c1) continue;
-            const int64_t r0 = bx[2] > y0 ? bx[2] : y0, r1 = bx[3] < y1 ? bx[3] : y1;
-            if (r0 >= r1) continue;
-            uint32_t rows = 0;
-            for (int64_t r = r0 - y0; r < r1 - y0; r++)
-                if (kk < row_last[r]) rows |= 1u << r;
+            uint32_t rows = box_rows(box + 4 * g, tl);
+            for (uint32_t m = rows; m; m &= m - 1u) /* rows whose pixels all ended earlier */
+                if (kk >= row_last[__builtin_ctz(m)]) rows &= ~(1u << __builtin_ctz(m));
             if (!rows) continue;
             const float mx = means2d[2 * g], my = means2d[2 * g + 1];
             const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
@@ -397,11 +418,7 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
             vd s_mx = zd, s_my = zd, s_a = zd, s_b = zd, s_c = zd, s_o = zd;
             const vd kd = zd + (double)kk;
             vf dx[NV], adx[NV], bdx[NV];
-            for (int v = 0; v < NV; v++) {
-                dx[v] = ((float)x0 + lane[v]) - mx;
-                adx[v] = a * dx[v] * dx[v];
-                bdx[v] = b * dx[v];
-            }
+            lane_terms(lane, x0, mx, a, b, dx, adx, bdx);
             int touched = 0;
             for (; rows; rows &= rows - 1u) {
                 const int r = __builtin_ctz(rows);
