@@ -384,3 +384,20 @@ def test_training_clamp_decisions_match_numba():
     out_n, g_n = _train(*scene, W, H, simd=False)
     _assert_close(out_s, out_n)
     _assert_grads(g_s, g_n)
+
+
+def test_kernel_entry_points_reject_mismatched_arrays():
+    cam = _camera(40, 24)
+    scene = _scene(50, 4, 3, F32)
+    proj, op, feats, bins = _projected(scene, cam)
+    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 40, 24, F32)
+    with pytest.raises(ValueError, match="do not cover a 57x24 image"):
+        cpu_simd.SimdComposite(setup.args(), 41 + 16, 24)
+    k = cpu_simd.SimdComposite(setup.args(), 40, 24)
+    with pytest.raises(ValueError, match=r"out_T must have shape \(24, 40\)"):
+        k.forward(1, np.zeros((24, 40, 3), np.float32), np.ones((40, 24), np.float32))
+    T, last = np.ones((24, 40), np.float32), np.zeros((24, 40), np.int32)
+    with pytest.raises(ValueError, match=r"grad_feat must have shape \(24, 40, 3\)"):
+        k.backward(1, T, last, np.zeros((24, 40, 2), np.float32), T)
+    with pytest.raises(ValueError, match="last must be C-contiguous int32"):
+        k.backward(1, T, last.astype(np.int64), np.zeros((24, 40, 3), np.float32), T)

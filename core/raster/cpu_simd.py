@@ -24,7 +24,9 @@ from torch import Tensor
 from core import native_build
 from core.kernel_pool import run_ranges, run_workers, zeros_touched
 
-__all__ = ["SOURCE", "TILE", "SimdComposite", "composite", "library", "why_unavailable"]
+__all__ = [
+    "SOURCE", "TILE", "SimdComposite", "composite", "library", "supports", "why_unavailable",
+]  # fmt: skip
 
 SOURCE = Path(__file__).with_name("native") / "composite_simd.c"
 TILE = 16  # the kernel's vector width in pixels (one tile row)
@@ -89,6 +91,11 @@ class SimdComposite:
         for name, arr in (("means2d", means2d), ("conics", conics), ("opacities", opac),
                           ("features", feats), ("consts", consts)):  # fmt: skip
             _check(name, arr, np.float32)
+        for name, arr, dt in (("gauss_ids", ids, np.int64), ("offsets", offsets, np.int64),
+                              ("mode", mode, np.int8), ("geo", geo, np.float64)):  # fmt: skip
+            _check(name, arr, dt)
+        if offsets.shape[0] - 1 != tiles_x * -(-height // TILE) or tiles_x != -(-width // TILE):
+            raise ValueError(f"the tile lists do not cover a {width}x{height} image")
         self.width, self.height = width, height
         self.n, self.n_ch = opac.shape[0], feats.shape[1]
         self.box = np.empty((self.n, 4), np.int32)
@@ -148,10 +155,14 @@ class SimdComposite:
         grad_alpha: np.ndarray,
     ) -> np.ndarray:
         """(N, 6 + C) float64 gradients: means2d (2), conic (3), opacity, features."""
-        for name, arr, dt in (("final_T", final_T, np.float32), ("last", last, np.int32),
-                              ("grad_feat", grad_feat, np.float32),
-                              ("grad_alpha", grad_alpha, np.float32)):  # fmt: skip
+        shape = (self.height, self.width)
+        for name, arr, dt, shp in (("final_T", final_T, np.float32, shape),
+                                   ("last", last, np.int32, shape),
+                                   ("grad_feat", grad_feat, np.float32, (*shape, self.n_ch)),
+                                   ("grad_alpha", grad_alpha, np.float32, shape)):  # fmt: skip
             _check(name, arr, dt)
+            if arr.shape != shp:
+                raise ValueError(f"{name} must have shape {shp}, got {arr.shape}")
         gbuf = zeros_touched((n_workers, self.n, 6 + self.n_ch), np.float64)
         tail = tuple(a.ctypes.data for a in (final_T, last, grad_feat, grad_alpha))
         self._run(self.lib.composite_simd_backward, n_workers,
