@@ -397,7 +397,10 @@ def test_kernel_entry_points_reject_mismatched_arrays():
     with pytest.raises(ValueError, match=r"out_T must have shape \(24, 40\)"):
         k.forward(1, np.zeros((24, 40, 3), np.float32), np.ones((40, 24), np.float32))
     T, last = np.ones((24, 40), np.float32), np.zeros((24, 40), np.int32)
+    gbuf = np.zeros((1, 50, 9))
     with pytest.raises(ValueError, match=r"grad_feat must have shape \(24, 40, 3\)"):
-        k.backward(1, T, last, np.zeros((24, 40, 2), np.float32), T)
+        k.backward(1, T, last, np.zeros((24, 40, 2), np.float32), T, gbuf)
     with pytest.raises(ValueError, match="last must be C-contiguous int32"):
-        k.backward(1, T, last.astype(np.int64), np.zeros((24, 40, 3), np.float32), T)
+        k.backward(1, T, last.astype(np.int64), np.zeros((24, 40, 3), np.float32), T, gbuf)
+    with pytest.raises(ValueError, match=r"gbuf must have shape \(2, 50, 9\)"):
+        k.backward(2, T, last, np.zeros((24, 40, 3), np.float32), T, gbuf)

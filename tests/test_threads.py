@@ -67,3 +67,19 @@ def test_results_do_not_depend_on_the_kernel_thread_count(restore_threads):
     torch.testing.assert_close(out[1][0], out[3][0], rtol=0, atol=0)
     for a, b in zip(out[1][1], out[3][1], strict=True):
         torch.testing.assert_close(a, b, rtol=1e-6, atol=1e-6)
+
+
+def test_scratch_buffers_are_zeroed_reused_and_never_shared():
+    import numpy as np
+
+    with kernel_pool.scratch_zeros((3, 1000)) as a:
+        assert a.shape == (3, 1000) and a.dtype == np.float64 and not a.any()
+        a += 7.0
+        base = a.base if a.base is not None else a
+        with kernel_pool.scratch_zeros((2, 500)) as b:  # nested: a different buffer
+            assert not np.shares_memory(a, b) and not b.any()
+    with kernel_pool.scratch_zeros((2, 1000)) as c:  # reuses a's memory, zeroed again
+        assert np.shares_memory(c, base) and not c.any()
+    with kernel_pool.scratch_zeros((4,), np.float32) as d:
+        assert d.dtype == np.float32 and not d.any()
+    assert len(kernel_pool._SCRATCH) <= kernel_pool._SCRATCH_KEEP

@@ -53,7 +53,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.kernel_pool import kernel_threads, run_ranges, run_workers, zeros_touched
+from core.kernel_pool import (
+    kernel_threads,
+    run_ranges,
+    run_workers,
+    scratch_zeros,
+    zeros_touched,
+)
 from core.raster import cpu_simd
 from core.raster.binning import TileBins
 from core.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
@@ -514,38 +520,39 @@ class CpuComposite(torch.autograd.Function):
         setup: _Setup | None = ctx.setup
         shapes, in_dtypes = ctx.shapes, ctx.in_dtypes
         n = shapes[0][0]
-        total = np.zeros((n, 6 + n_ch), np.float64)
-        if setup is not None and n > 0:
-            out_T, out_last = ctx.state
-            if grad_feat is None:
-                gf = np.zeros((height, width, n_ch), out_T.dtype)
-            else:
-                gf = _np(grad_feat, dtype)
-            if grad_alpha is None:
-                ga = np.zeros((height, width), out_T.dtype)
-            else:
-                ga = _np(grad_alpha, dtype)
-            n_workers = kernel_threads()
-            if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
-                total = ctx.kernel.backward(n_workers, out_T, out_last, gf, ga)
-            else:
-                gbuf = zeros_touched((n_workers, n, 6 + n_ch), np.float64)
-                args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
-                run_workers(_backward_worker, n_workers, args)
-                total = gbuf.sum(axis=0)
-        tot = torch.from_numpy(total)
-        grads = (
-            tot[:, _G_MX : _G_MY + 1],
-            tot[:, _G_A : _G_C + 1],
-            tot[:, _G_O],
-            tot[:, _G_F:],
-        )
-        out = [
-            g.to(d).reshape(s).clone(memory_format=torch.contiguous_format) if need else None
-            for g, s, d, need in zip(
-                grads, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
+        n_workers = kernel_threads() if setup is not None and n > 0 else 1
+        with scratch_zeros((n_workers, n, 6 + n_ch)) as gbuf:
+            if setup is not None and n > 0:
+                out_T, out_last = ctx.state
+                if grad_feat is None:
+                    gf = np.zeros((height, width, n_ch), out_T.dtype)
+                else:
+                    gf = _np(grad_feat, dtype)
+                if grad_alpha is None:
+                    ga = np.zeros((height, width), out_T.dtype)
+                else:
+                    ga = _np(grad_alpha, dtype)
+                if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
+                    ctx.kernel.backward(n_workers, out_T, out_last, gf, ga, gbuf)
+                else:
+                    args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
+                    run_workers(_backward_worker, n_workers, args)
+                for w in range(1, n_workers):
+                    np.add(gbuf[0], gbuf[w], out=gbuf[0])
+            tot = torch.from_numpy(gbuf[0])
+            grads = (
+                tot[:, _G_MX : _G_MY + 1],
+                tot[:, _G_A : _G_C + 1],
+                tot[:, _G_O],
+                tot[:, _G_F:],
             )
-        ]
+            # copies (clone): nothing may keep a view of the pooled buffer
+            out = [
+                g.to(d).reshape(s).clone(memory_format=torch.contiguous_format) if need else None
+                for g, s, d, need in zip(
+                    grads, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
+                )
+            ]
         return (*out, None, None, None, None)
 
 

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from core import native_build
-from core.kernel_pool import run_ranges, run_workers, zeros_touched
+from core.kernel_pool import run_ranges, run_workers
 
 __all__ = [
     "SOURCE", "TILE", "SimdComposite", "composite", "library", "supports", "why_unavailable",
@@ -153,21 +153,23 @@ class SimdComposite:
         last: np.ndarray,
         grad_feat: np.ndarray,
         grad_alpha: np.ndarray,
-    ) -> np.ndarray:
-        """(N, 6 + C) float64 gradients: means2d (2), conic (3), opacity, features."""
+        gbuf: np.ndarray,
+    ) -> None:
+        """Add each worker's gradient sums into ``gbuf[w]``, a zeroed (n_workers, N,
+        6 + C) float64 array: means2d (2), conic (3), opacity, features."""
         shape = (self.height, self.width)
         for name, arr, dt, shp in (("final_T", final_T, np.float32, shape),
                                    ("last", last, np.int32, shape),
                                    ("grad_feat", grad_feat, np.float32, (*shape, self.n_ch)),
-                                   ("grad_alpha", grad_alpha, np.float32, shape)):  # fmt: skip
+                                   ("grad_alpha", grad_alpha, np.float32, shape),
+                                   ("gbuf", gbuf, np.float64,
+                                    (n_workers, self.n, 6 + self.n_ch))):  # fmt: skip
             _check(name, arr, dt)
             if arr.shape != shp:
                 raise ValueError(f"{name} must have shape {shp}, got {arr.shape}")
-        gbuf = zeros_touched((n_workers, self.n, 6 + self.n_ch), np.float64)
         tail = tuple(a.ctypes.data for a in (final_T, last, grad_feat, grad_alpha))
         self._run(self.lib.composite_simd_backward, n_workers,
                   (*tail, self.n, gbuf.ctypes.data))  # fmt: skip
-        return gbuf.sum(axis=0)
 
 
 def composite(
