@@ -23,7 +23,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
     import torch
 
     from core.kernel_pool import kernel_threads
-    from core.raster import BACKENDS
+    from core.raster import BACKENDS, cpu_simd
 
     devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
     info = {
@@ -35,6 +35,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
             name: {d: (ok(torch.device(d)) or "available") for d in devices}
             for name, (ok, _) in BACKENDS.items()
         },
+        "cpu_compositing": cpu_simd.status(),
     }
     print(json.dumps(info, indent=2))
     return 0

@@ -145,3 +145,23 @@ def test_prebuild_needs_a_compiler(tmp_path, monkeypatch):
     monkeypatch.setenv("CC", str(tmp_path / "no-such-cc"))
     with pytest.raises(RuntimeError, match="no C compiler found"):
         native_build.prebuild(tmp_path / "out")
+
+
+def test_glint_info_says_which_compositing_kernel_runs(monkeypatch, capsys):
+    import json
+
+    from core.cli import main
+
+    monkeypatch.setenv("GLINT_NATIVE", "0")
+    assert main(["info"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["cpu_compositing"] == {
+        "kernel": "numba",
+        "why": "GLINT_NATIVE=0 turns native kernels off",
+    }
+    monkeypatch.delenv("GLINT_NATIVE")
+    if cpu_simd.why_unavailable() is None:
+        assert main(["info"]) == 0
+        info = json.loads(capsys.readouterr().out)
+        assert info["cpu_compositing"]["kernel"] == "simd"
+        assert info["cpu_compositing"]["library"].endswith(".so")

@@ -25,7 +25,8 @@ from core import native_build
 from core.kernel_pool import run_ranges, run_workers
 
 __all__ = [
-    "SOURCE", "TILE", "SimdComposite", "composite", "library", "supports", "why_unavailable",
+    "SOURCE", "TILE", "SimdComposite", "composite", "library", "status", "supports",
+    "why_unavailable",
 ]  # fmt: skip
 
 SOURCE = Path(__file__).with_name("native") / "composite_simd.c"
@@ -61,6 +62,15 @@ def _set_signatures(lib: ctypes.CDLL) -> None:
 def why_unavailable() -> str | None:
     """None when the SIMD kernel is built and loaded, otherwise why not."""
     return native_build.why_unavailable(SOURCE)
+
+
+def status() -> dict[str, str]:
+    """Which kernel float32 compositing runs here: the SIMD library's path, or numba
+    and why (for ``glint info``)."""
+    lib = library()
+    if lib is None:
+        return {"kernel": "numba", "why": why_unavailable() or "unknown"}
+    return {"kernel": "simd", "library": str(lib._name)}
 
 
 def supports(tensors: tuple[Tensor, ...], tile_size: int) -> bool:
