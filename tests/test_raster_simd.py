@@ -201,15 +201,6 @@ def test_dispatch_float32_to_simd_float64_to_numba(monkeypatch):
         assert len(calls) == 1
 
 
-def test_composite_rejects_wrong_arrays():
-    cam = _camera(20, 20)
-    scene = _scene(30, 2, 2, F32)
-    proj, op, feats, bins = _projected(scene, cam)
-    setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 20, 20, F32)
-    with pytest.raises(ValueError, match="out_feat must be C-contiguous float32"):
-        cpu_simd.composite(setup.args(), 1, np.zeros((20, 20, 2)), np.ones((20, 20), np.float32))
-
-
 def _screen_space(means2d, conics, op, feats, w, h):
     n = means2d.shape[0]
     depths = torch.linspace(1.0, 2.0, n)
@@ -393,6 +384,8 @@ def test_kernel_entry_points_reject_mismatched_arrays():
     setup = _Setup(proj.means2d, proj.conics, op, feats, bins, 40, 24, F32)
     with pytest.raises(ValueError, match="do not cover a 57x24 image"):
         cpu_simd.SimdComposite(setup.args(), 41 + 16, 24)
+    with pytest.raises(ValueError, match="out_feat must be C-contiguous float32"):
+        cpu_simd.composite(setup.args(), 1, np.zeros((24, 40, 3)), np.ones((24, 40), np.float32))
     k = cpu_simd.SimdComposite(setup.args(), 40, 24)
     with pytest.raises(ValueError, match=r"out_T must have shape \(24, 40\)"):
         k.forward(1, np.zeros((24, 40, 3), np.float32), np.ones((40, 24), np.float32))
