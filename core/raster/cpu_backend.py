@@ -469,7 +469,8 @@ def _compute_dtype(*tensors: Tensor) -> torch.dtype:
 
 
 class CpuComposite(torch.autograd.Function):
-    """Differentiable tile compositing on the CPU (numba forward and backward)."""
+    """Differentiable tile compositing on the CPU: numba or, with ``simd``, the C kernels
+    (``backward=False``: a frame, which needs none of the backward's state)."""
 
     @staticmethod
     def forward(
@@ -482,18 +483,22 @@ class CpuComposite(torch.autograd.Function):
         width: int,
         height: int,
         simd: bool = False,
+        backward: bool = True,
     ) -> tuple[Tensor, Tensor]:
         dtype = _compute_dtype(means2d, conics, opacities, features)
         n_ch = features.shape[1]
         npdt = np.float32 if dtype == torch.float32 else np.float64
         out_feat = zeros_touched((height, width, n_ch), npdt)
         out_T = np.ones((height, width), npdt)
-        out_last = zeros_touched((height, width), np.int32)
+        # a SIMD frame needs no last-contributor counts (the numba kernel writes them anyway)
+        out_last = zeros_touched((height, width), np.int32) if backward or not simd else None
         setup = None
         kernel = None  # the SIMD kernel's state, which its backward reuses
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
             setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
-            if simd:
+            if simd and not backward:  # a frame: no last-contributor counts, no state
+                cpu_simd.composite(setup.args(), kernel_threads(), out_feat, out_T)
+            elif simd:
                 kernel = cpu_simd.SimdComposite(setup.args(), width, height)
                 kernel.forward(kernel_threads(), out_feat, out_T, out_last)
             else:
@@ -546,14 +551,16 @@ class CpuComposite(torch.autograd.Function):
                 tot[:, _G_O],
                 tot[:, _G_F:],
             )
-            # copies (clone): nothing may keep a view of the pooled buffer
+            # copies: nothing may keep a view of the pooled buffer
             out = [
-                g.to(d).reshape(s).clone(memory_format=torch.contiguous_format) if need else None
+                g.to(d, memory_format=torch.contiguous_format, copy=True).reshape(s)
+                if need
+                else None
                 for g, s, d, need in zip(
                     grads, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
                 )
             ]
-        return (*out, None, None, None, None)
+        return (*out, None, None, None, None, None)
 
 
 def rasterize_cpu(
@@ -577,29 +584,8 @@ def rasterize_cpu(
         why = cpu_simd.why_unavailable() or "it needs float32 inputs and 16-px tiles"
         raise RuntimeError(f"the SIMD compositing kernel does not apply here: {why}")
     needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-    if use_simd and not needs_grad:
-        feats, alpha = _composite_simd(*tensors, bins, width, height)
-    else:
-        feats, alpha = CpuComposite.apply(*tensors, bins, width, height, use_simd)
+    feats, alpha = CpuComposite.apply(*tensors, bins, width, height, use_simd, needs_grad)
     return feats.to(features.dtype), alpha.to(features.dtype)
-
-
-def _composite_simd(
-    means2d: Tensor,
-    conics: Tensor,
-    opacities: Tensor,
-    features: Tensor,
-    bins: TileBins,
-    width: int,
-    height: int,
-) -> tuple[Tensor, Tensor]:
-    n_ch = features.shape[1]
-    out_feat = zeros_touched((height, width, n_ch), np.float32)
-    out_T = np.ones((height, width), np.float32)
-    if bins.gauss_ids.numel() > 0 and n_ch > 0:
-        setup = _Setup(means2d, conics, opacities, features, bins, width, height, torch.float32)
-        cpu_simd.composite(setup.args(), kernel_threads(), out_feat, out_T)
-    return torch.from_numpy(out_feat), 1.0 - torch.from_numpy(out_T)
 
 
 # Registered even without numba, so that asking for "cpu" says why it cannot run.
