@@ -3,8 +3,9 @@
 Two layers:
 
 * On any machine (gsplat installed, no GPU): ``rasterize_gsplat`` runs with a PyTorch
-  twin of ``gsplat.rasterization`` built from gsplat's own reference projection
-  (``gsplat.cuda._torch_impl``) and this project's reference compositor. That checks
+  twin of ``gsplat.rasterization`` (``tests/gsplat_twin.py``) built from gsplat's own
+  reference projection (``gsplat.cuda._torch_impl``) and this project's reference
+  compositor. That checks
   everything this project owns — camera matrices in gsplat's layout, the per-axis and
   packed outputs mapped back to (N, …), gradients reaching every input and the
   screen-space gradient for densification — against ``backend="reference"``.
@@ -24,15 +25,13 @@ from core.cameras import Camera, Intrinsics
 from core.config import ConfigError, config_from_dict
 from core.errors import BackendUnavailableError
 from core.raster import (
-    Projected,
     available_backends,
-    bin_gaussians,
     covariances_from,
     rasterize,
     resolve_backend,
 )
 from core.raster.cuda_backend import available, camera_matrices, rasterize_gsplat
-from core.raster.reference import rasterize_reference
+from tests.gsplat_twin import gsplat_twin
 
 F64 = torch.float64
 HAS_CUDA = torch.cuda.is_available() and "cuda" in available_backends("cuda")
@@ -68,46 +67,6 @@ def _scene(n: int, seed: int, channels: int, *, flat: bool = False) -> list[torc
     opac = torch.rand(n, generator=g, dtype=F64) * 0.7 + 0.2
     feats = torch.rand(n, channels, generator=g, dtype=F64) * 2 - 0.5
     return [t.float() for t in (means, quats, scales, opac, feats)]
-
-
-def gsplat_twin(
-    means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kw
-):  # fmt: skip
-    """``gsplat.rasterization`` with the same outputs, in PyTorch on any device.
-
-    Projection is gsplat's own reference (``_torch_impl``); binning and compositing
-    are this project's reference (the CUDA kernels' semantics, checked on a GPU).
-    """
-    impl = pytest.importorskip("gsplat.cuda._torch_impl")
-    covars = kw.get("covars")
-    if covars is None:
-        covars, _ = impl._quat_scale_to_covar_preci(quats, scales, True, False, triu=False)
-    radii, means2d, depths, conics, comp = impl._fully_fused_projection(
-        means, covars, viewmats, Ks, width, height,
-        eps2d=kw["eps2d"], near_plane=kw["near_plane"], far_plane=kw["far_plane"],
-        calc_compensations=kw["rasterize_mode"] == "antialiased",
-    )  # fmt: skip
-    if comp is not None:
-        opacities = opacities * comp[0]
-    radii, means2d, depths, conics = radii[0], means2d[0], depths[0], conics[0]
-    n = means.shape[0]
-    ids = None
-    if kw["packed"]:
-        ids = torch.nonzero((radii > 0).all(dim=-1)).squeeze(1)
-        m2d_out = means2d[ids]  # gsplat's packed rows; compositing reads them back
-        full = means2d.index_put((ids,), m2d_out)
-        meta = {"gaussian_ids": ids, "radii": radii[ids], "depths": depths[ids]}
-    else:
-        m2d_out = means2d[None]
-        full = m2d_out[0]
-        meta = {"gaussian_ids": None, "radii": radii[None], "depths": depths[None]}
-    meta["means2d"] = m2d_out
-    r = torch.where((radii > 0).all(dim=-1), radii.amax(dim=-1), 0).to(torch.int64)
-    proj = Projected(means2d=full, conics=conics, depths=depths, radii=r, cov2d=None)  # type: ignore[arg-type]
-    bins = bin_gaussians(full, depths, r, width, height, kw["tile_size"])
-    feats, alpha = rasterize_reference(proj, opacities, colors, bins, width, height)
-    assert n == colors.shape[0]
-    return feats[None], alpha[None, ..., None], meta
 
 
 def _run(fn, scene, cam, weights):
