@@ -27,11 +27,13 @@ from core.checkpoint import load_checkpoint
 from core.config import TrainConfig, saved_config
 from core.envmap import EnvMap
 from core.envmap_io import cube_to_equirect
+from core.errors import BackendUnavailableError
 from core.gaussians import Gaussians
 from core.gbuffer import geometry_depth, render_gbuffer_tensors
 from core.imageio import linear_to_srgb
 from core.outputs import CHANNELS, colormap
 from core.planner import ScenePlan
+from core.raster import resolve_backend
 from core.schedule import Phase, phase_at
 from core.shading import deferred_shade
 from core.trainer import CHECKPOINT_NAME, eval_background
@@ -60,6 +62,7 @@ class LoadedModel:
     radius: float
     device: torch.device
     static: dict[str, torch.Tensor]
+    backend: str = "auto"
 
     @staticmethod
     def precompute(g: Gaussians, sh_degree: int) -> dict[str, torch.Tensor]:
@@ -95,6 +98,7 @@ class LoadedModel:
             "center": self.center,
             "radius": self.radius,
             "device": str(self.device),
+            "backend": self.backend,
         }
 
 
@@ -120,6 +124,21 @@ def _phase_of(
     return phase_at(
         cfg, max(iteration - 1, 0), envmap_planned=env, multi_view_planned=mv, max_sh_degree=sh
     )
+
+
+def frame_backend(trained_with: str, device: torch.device) -> str:
+    """The rasteriser for this server's frames of a run trained with ``trained_with``.
+
+    A run's backend was picked for the machine that trained it: a GPU worker's
+    ``cuda`` cannot run on a CPU-only API server, nor ``cpu`` on a GPU one. The run
+    is still viewable: a backend this device lacks gives way to ``auto`` here.
+    """
+    try:
+        return resolve_backend(trained_with, device)
+    except BackendUnavailableError as exc:
+        chosen = resolve_backend("auto", device)
+        log.info("viewer: %s; rendering with '%s' instead", exc, chosen)
+        return chosen
 
 
 def load_model(path: Path, device: torch.device) -> LoadedModel:
@@ -155,6 +174,7 @@ def load_model(path: Path, device: torch.device) -> LoadedModel:
         radius=max(radius, 1e-6),
         device=device,
         static=LoadedModel.precompute(g, phase.sh_degree),
+        backend=frame_backend(cfg.backend, device),
     )
 
 
@@ -270,7 +290,7 @@ def render_channel(model: LoadedModel, camera: Camera, channel: str) -> np.ndarr
         st["w_r"],
         camera,
         covariances=st["covariances"],
-        backend=model.cfg.backend,
+        backend=model.backend,
         antialiased=phase.antialiased,
     )
     if channel in ("final", "specular"):

@@ -64,6 +64,7 @@ def test_view_orbit_channel_and_screenshot(page, trained_job: TrainedJob, tmp_pa
     assert page.locator("#job-state").inner_text() == "succeeded"
     assert page.locator("#job-iter").inner_text() == "12 / 12"
     assert "dB" in page.locator("#job-psnr").inner_text()
+    assert page.locator("#st-device").inner_text() in ("cpu · cpu", "cpu · reference")
     # settle on the view the page chose (it jumps to the first training camera)
     page.wait_for_timeout(400)
     before_head = wait_still_frame(page, 0)

@@ -220,7 +220,7 @@
     const hadModel = !!state.model;
     state.model = model;
     $("st-model").textContent = `${model.n_gaussians.toLocaleString()} G · it ${model.iteration}`;
-    $("st-device").textContent = model.device;
+    $("st-device").textContent = model.backend ? `${model.device} · ${model.backend}` : model.device;
     refreshEnvmap(model);
     if (first || !hadModel) { // frame the model until training cameras arrive
       state.target = model.center.slice();
