@@ -239,13 +239,19 @@ def evaluate_run(
     mesh_resolution: int | None = None,
     remesh: bool = False,
     fps_frames: int | None = None,
+    device: str | None = None,
+    backend: str | None = None,
+    notes: list[str] | None = None,
 ) -> dict[str, Any]:
-    """Every metric of the paper for one run; writes eval.json and the report section."""
+    """Every metric of the paper for one run; writes eval.json and the report section.
+
+    ``device``/``backend``/``notes``: where to reopen the run (see ``load_run``).
+    """
     from core.outputs import export_sections, geometry_errors, load_run
 
     run = Path(run_dir)
     if trainer is None:
-        trainer = load_run(run, gt_scene)
+        trainer = load_run(run, gt_scene, device=device, backend=backend, notes=notes)
     t0 = time.perf_counter()
     views = eval_views(trainer.scene)
     ev: dict[str, Any] = {

@@ -195,6 +195,19 @@ def _register_core(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_demo)
 
 
+def _add_reopen_args(p: argparse.ArgumentParser) -> None:
+    """Where ``glint mesh/eval`` reopen a run (its own device may be another machine's)."""
+    p.add_argument(
+        "--device",
+        help="cpu or cuda[:N] (default: the run's, or cpu when this machine lacks it)",
+    )
+    p.add_argument(
+        "--backend",
+        choices=["auto", "reference", "cpu", "cuda"],
+        help="rasteriser (default: the run's, or auto when this machine lacks it)",
+    )
+
+
 def _add_mesh_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--voxel", type=float, help="TSDF voxel size (default: 2·radius/resolution)")
     p.add_argument("--trunc", type=float, help="TSDF truncation distance (default: 4 voxels)")
@@ -216,7 +229,9 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     from core.outputs import load_run
 
     _set_threads(args.threads)
-    trainer = load_run(args.run, args.scene)
+    notes: list[str] = []
+    trainer = load_run(args.run, args.scene, device=args.device, backend=args.backend, notes=notes)
+    _print_notes(notes)
     _, info = mesh_run(
         trainer,
         voxel=args.voxel,
@@ -236,10 +251,16 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_notes(notes: list[str]) -> None:
+    for note in notes:
+        print(f"note: {note}", file=sys.stderr)
+
+
 def _cmd_eval(args: argparse.Namespace) -> int:
     from core.bench import evaluate_run
 
     _set_threads(args.threads)
+    notes: list[str] = []
     ev = evaluate_run(
         args.run,
         args.gt,
@@ -248,7 +269,11 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         trunc=args.trunc,
         mesh_resolution=args.mesh_resolution,
         remesh=args.remesh,
+        device=args.device,
+        backend=args.backend,
+        notes=notes,
     )
+    _print_notes(notes)
     print(json.dumps(ev["summary"], indent=2))
     print(f"wrote eval.json and the Evaluation section of report.md in {args.run}")
     return 0
@@ -337,6 +362,7 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
         help="keep components with at least this fraction of the largest one's faces",
     )
     p.add_argument("--threads", **threads)
+    _add_reopen_args(p)
     p.set_defaults(func=_cmd_mesh)
     p = sub.add_parser(
         "eval",
@@ -356,6 +382,7 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     _add_mesh_args(p)
     p.add_argument("--remesh", action="store_true", help="extract the mesh even if up to date")
     p.add_argument("--threads", **threads)
+    _add_reopen_args(p)
     p.set_defaults(func=_cmd_eval)
     p = sub.add_parser(
         "bench",

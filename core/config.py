@@ -125,7 +125,7 @@ class TrainConfig(_Strict):
 
     iterations: int = Field(30_000, ge=1)
     seed: int = 0
-    device: str = "cpu"
+    device: str = Field("cpu", description="'cpu', 'cuda' or 'cuda:N'")
     backend: Literal["auto", "reference", "cpu", "cuda"] = "auto"
     resolution_scale: float = Field(1.0, gt=0, le=1, description="downscale images on load")
     background: Literal["white", "black", "random"] | list[float] = "white"
@@ -157,6 +157,17 @@ class TrainConfig(_Strict):
     def _envmap_res(cls, v: Any) -> Any:
         if v != "auto" and not 4 <= int(v) <= 2048:
             raise ValueError("envmap_resolution must be 'auto' or an integer in [4, 2048]")
+        return v
+
+    @field_validator("device")
+    @classmethod
+    def _device(cls, v: str) -> str:
+        # Only the spelling here: whether the device exists is the training machine's
+        # business (the API validates jobs on a server that may have no GPU).
+        from core.devices import DEVICE_HINT, DEVICE_RE
+
+        if not DEVICE_RE.match(v):
+            raise ValueError(f"expected {DEVICE_HINT}, got '{v}'")
         return v
 
     @field_validator("background")

@@ -158,10 +158,24 @@ def find_run_scene(run_dir: str | Path, scene_dir: str | Path | None = None) -> 
     raise GlintError(f"{run}: no {SCENE_RECORD} in the run folder; pass the scene folder")
 
 
-def load_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> Trainer:
+def load_run(
+    run_dir: str | Path,
+    scene_dir: str | Path | None = None,
+    *,
+    device: str | None = None,
+    backend: str | None = None,
+    notes: list[str] | None = None,
+) -> Trainer:
     """The trained model of a run folder (its latest checkpoint), with its scene loaded
-    at the run's resolution; raises if the run has no checkpoint."""
+    at the run's resolution; raises if the run has no checkpoint.
+
+    ``device``/``backend`` replace the run's own; without them, a device or backend
+    this machine lacks (a GPU worker's run opened on a laptop) gives way to the CPU
+    and a backend that runs there, with a line appended to ``notes`` for each.
+    The run's config.json is not changed.
+    """
     from core.config import saved_config
+    from core.devices import reopen_placement
     from core.errors import GlintError
     from core.scene_io import load_scene
     from core.trainer import CHECKPOINT_NAME, Trainer
@@ -173,6 +187,12 @@ def load_run(run_dir: str | Path, scene_dir: str | Path | None = None) -> Traine
     if not cfg_path.is_file():
         raise GlintError(f"{run}: no config.json")
     cfg = saved_config(json.loads(cfg_path.read_text()), str(cfg_path))
+    place = reopen_placement(
+        cfg.device, cfg.backend, device_override=device, backend_override=backend
+    )
+    if notes is not None:
+        notes.extend(place.notes)
+    cfg = cfg.model_copy(update={"device": place.device, "backend": place.backend})
     scene = load_scene(find_run_scene(run, scene_dir), downscale=1.0 / cfg.resolution_scale)
     trainer = Trainer(scene, cfg, run)
     trainer.setup(resume=True)

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from core.config import TrainConfig
+from core.devices import require_device
 from core.scene import Scene
 from core.scene_io import load_scene
 from core.trainer import Trainer, TrainResult
@@ -25,6 +26,7 @@ def train_scene(
     export: bool = True,
 ) -> tuple[TrainResult, dict[str, Any] | None]:
     """Load (if a path), train or resume, and export artifacts when training finished."""
+    require_device(cfg.device)  # a missing GPU fails here, before the run folder is made
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if not isinstance(scene, Scene):

@@ -22,6 +22,7 @@ from torch import Tensor
 from core.checkpoint import load_checkpoint, save_checkpoint
 from core.config import ConfigError, TrainConfig
 from core.densify import DensifyStrategy
+from core.devices import require_device
 from core.envmap import EnvMap
 from core.gaussians import Gaussians
 from core.gbuffer import GBuffer, geometry_depth, render_gbuffer
@@ -111,11 +112,11 @@ class Trainer:
     ) -> None:
         if not scene.train:
             raise ValueError("scene has no training views")
+        self.device = require_device(cfg.device)  # before anything is written
         self.scene = scene
         self.cfg = cfg
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
-        self.device = torch.device(cfg.device)
         check_absgrad(cfg, self.device)
         self.on_event = on_event or (lambda e: None)
         self.should_stop = should_stop or (lambda: False)

@@ -27,13 +27,12 @@ from core.checkpoint import load_checkpoint
 from core.config import TrainConfig, saved_config
 from core.envmap import EnvMap
 from core.envmap_io import cube_to_equirect
-from core.errors import BackendUnavailableError
 from core.gaussians import Gaussians
 from core.gbuffer import geometry_depth, render_gbuffer_tensors
 from core.imageio import linear_to_srgb
 from core.outputs import CHANNELS, colormap
 from core.planner import ScenePlan
-from core.raster import resolve_backend
+from core.raster import fallback_backend
 from core.schedule import Phase, phase_at
 from core.shading import deferred_shade
 from core.trainer import CHECKPOINT_NAME, eval_background
@@ -133,12 +132,10 @@ def frame_backend(trained_with: str, device: torch.device) -> str:
     ``cuda`` cannot run on a CPU-only API server, nor ``cpu`` on a GPU one. The run
     is still viewable: a backend this device lacks gives way to ``auto`` here.
     """
-    try:
-        return resolve_backend(trained_with, device)
-    except BackendUnavailableError as exc:
-        chosen = resolve_backend("auto", device)
-        log.info("viewer: %s; rendering with '%s' instead", exc, chosen)
-        return chosen
+    chosen, why = fallback_backend(trained_with, device)
+    if why is not None:
+        log.info("viewer: %s; rendering with '%s' instead", why, chosen)
+    return chosen
 
 
 def load_model(path: Path, device: torch.device) -> LoadedModel:

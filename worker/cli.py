@@ -9,11 +9,8 @@ from __future__ import annotations
 
 import argparse
 import os
-import re
 import socket
 import sys
-
-DEVICE = re.compile(r"^(cpu|cuda(:\d+)?)$")
 
 
 def node_name(device: str) -> str:
@@ -22,9 +19,13 @@ def node_name(device: str) -> str:
 
 
 def _cmd_worker(args: argparse.Namespace) -> int:
+    from core.devices import DeviceUnavailableError, require_device
+
     device = args.device or os.environ.get("GLINT_WORKER_DEVICE") or "cpu"
-    if not DEVICE.match(device):
-        print(f"glint worker: --device must be cpu or cuda:N, not {device!r}", file=sys.stderr)
+    try:  # a worker without its GPU would claim jobs only to fail every one of them
+        require_device(device, "--device")
+    except DeviceUnavailableError as exc:
+        print(f"glint worker: {exc}", file=sys.stderr)
         return 2
     # the app reads GLINT_* when worker.app is imported: options go through the env
     os.environ["GLINT_WORKER_DEVICE"] = device

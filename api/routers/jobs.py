@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import json
 import logging
-import re
 from collections.abc import AsyncIterator
 from datetime import UTC, datetime
 from typing import Annotated
@@ -39,7 +38,7 @@ from api.deps import (
     StoreDep,
 )
 from api.models import Job, JobState, SceneState, new_id
-from api.problems import ApiError, FieldError, not_found, responses
+from api.problems import ApiError, not_found, responses
 from api.queue import JobQueue
 from api.routers.scenes import owned_scene
 from api.schemas import JobCreate, JobOut, JobStateName, Page
@@ -51,7 +50,6 @@ log = logging.getLogger("glint.api")
 
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]
 AUTH = (401, 404)
-DEVICE = re.compile(r"^(cpu|cuda(:\d{1,2})?)$")
 
 
 def _now() -> datetime:
@@ -96,14 +94,6 @@ def _enqueue(queue: JobQueue, job_id: str) -> None:
 def create_job(
     body: JobCreate, principal: PrincipalDep, session: SessionDep, queue: QueueDep
 ) -> JobOut:
-    if not DEVICE.match(body.config.device):
-        raise ApiError(
-            422,
-            "validation-error",
-            f"invalid request: body.config.device: '{body.config.device}' is not a device "
-            "(expected 'cpu', 'cuda' or 'cuda:N')",
-            errors=[FieldError(field="body.config.device", message="expected cpu, cuda or cuda:N")],
-        )
     scene = owned_scene(session, principal, body.scene_id)
     if scene.state != SceneState.READY:
         raise ApiError(

@@ -35,6 +35,7 @@ __all__ = [
     "available_backends",
     "bin_gaussians",
     "covariances_from",
+    "fallback_backend",
     "project_gaussians",
     "quats_to_rotmat",
     "rasterize",
@@ -116,6 +117,19 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     if reason is not None:
         raise BackendUnavailableError(f"rasteriser backend '{backend}' is unavailable: {reason}")
     return backend
+
+
+def fallback_backend(preferred: str, device: torch.device | str) -> tuple[str, str | None]:
+    """``preferred`` resolved on ``device``, or 'auto''s choice and why it was replaced.
+
+    For rendering a finished run on another machine: the backend it trained with may
+    not exist here (a GPU worker's 'cuda' on a CPU-only server), but any backend
+    renders the same model.
+    """
+    try:
+        return resolve_backend(preferred, device), None
+    except BackendUnavailableError as exc:
+        return resolve_backend("auto", device), str(exc)
 
 
 # Backends that run the whole pipeline (projection, binning, compositing) themselves.
