@@ -320,6 +320,26 @@ def _public_error(exc: BaseException, store_root: Path) -> str:
     return msg[:4000]
 
 
+def placed_config(config: dict[str, Any], device: str | None) -> tuple[dict[str, Any], str | None]:
+    """The job config this runner trains with, and a note when it changed the backend.
+
+    ``device`` (a worker's ``--device``) replaces the config's: where a job trains is
+    the runner's business. The backend follows the device: a job submitted with
+    ``backend: cuda`` that lands on a CPU worker (or ``cpu`` on a GPU one) would
+    otherwise fail on its first render, so such a backend gives way to ``auto``.
+    """
+    if not device:
+        return config, None
+    from core.raster import fallback_backend
+
+    config = {**config, "device": device}
+    _, why = fallback_backend(str(config.get("backend", "auto")), device)
+    if why is None:
+        return config, None
+    config["backend"] = "auto"
+    return config, f"{why}; this worker trains with 'auto' on {device}"
+
+
 def run_job(
     job_id: str,
     settings: Settings,
@@ -349,8 +369,9 @@ def run_job(
         job = s.get(Job, job_id)
         assert job is not None
         config, scene_id = dict(job.config), job.scene_id
-    if device:
-        config["device"] = device
+    config, note = placed_config(config, device)
+    if note:
+        log.warning("job %s: %s", job_id, note)
     reporter = _JobReporter(database, job_id, lease, settings, stop)
     heartbeat = _Heartbeat(reporter, settings.heartbeat_s)
     heartbeat.start()

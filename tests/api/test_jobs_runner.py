@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import threading
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -10,10 +11,11 @@ import pytest
 from sqlalchemy import select
 
 from api.db import Database
-from api.jobs_runner import _JobReporter, claim, json_safe, run_job
+from api.jobs_runner import _JobReporter, claim, json_safe, placed_config, run_job
 from api.migrate import upgrade
 from api.models import Job, JobState, Scene, SceneState, new_id
-from tests.api.support import make_settings
+from api.store import job_run_key, scene_files_key
+from tests.api.support import TINY_CONFIG, make_settings
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])
@@ -154,3 +156,41 @@ def test_json_safe() -> None:
         "b": [1.0, None],
         "c": [2, "x"],
     }
+
+
+def test_the_backend_follows_the_workers_device() -> None:
+    cfg = {"iterations": 5, "backend": "cuda"}
+    assert placed_config(cfg, None) == (cfg, None)  # the embedded runner keeps the config
+    placed, note = placed_config(cfg, "cpu")
+    assert placed == {"iterations": 5, "backend": "auto", "device": "cpu"}
+    assert note is not None and "'cuda' is unavailable" in note and "'auto' on cpu" in note
+    assert cfg == {"iterations": 5, "backend": "cuda"}  # the stored job config is not edited
+    for backend in ("auto", "reference"):
+        assert placed_config({"backend": backend}, "cpu") == (
+            {"backend": backend, "device": "cpu"},
+            None,
+        )
+
+
+def test_a_cuda_job_on_a_cpu_worker_trains(tmp_path: Path, caplog) -> None:  # type: ignore[no-untyped-def]
+    """A job submitted for GPU workers that a CPU worker takes trains instead of failing."""
+    from core.synthetic import write_synthetic_scene
+
+    settings = make_settings(tmp_path)
+    db = Database(settings.db_url)
+    upgrade(db.engine)
+    jid = _job(db, config={**TINY_CONFIG, "iterations": 6, "backend": "cuda"})
+    scene_id = _get(db, jid).scene_id
+    write_synthetic_scene(
+        settings.store_root / scene_files_key(scene_id), "sphere", "glossy",
+        n_train=3, n_test=1, size=16,
+    )  # fmt: skip
+    with caplog.at_level("WARNING", logger="glint"):
+        assert run_job(jid, settings, database=db, device="cpu") == JobState.SUCCEEDED
+    job = _get(db, jid)
+    assert job.error is None and job.iteration == 6
+    assert job.config["backend"] == "cuda"  # what was asked stays on record
+    run_cfg = json.loads((settings.store_root / job_run_key(jid) / "config.json").read_text())
+    assert (run_cfg["device"], run_cfg["backend"]) == ("cpu", "auto")
+    assert any("this worker trains with 'auto' on cpu" in r.getMessage() for r in caplog.records)
+    db.dispose()
