@@ -8,10 +8,9 @@ from pathlib import Path
 from typing import Any
 
 from core.config import TrainConfig
-from core.devices import require_device
 from core.scene import Scene
 from core.scene_io import load_scene
-from core.trainer import Trainer, TrainResult
+from core.trainer import Trainer, TrainResult, check_runnable
 
 
 def train_scene(
@@ -26,7 +25,7 @@ def train_scene(
     export: bool = True,
 ) -> tuple[TrainResult, dict[str, Any] | None]:
     """Load (if a path), train or resume, and export artifacts when training finished."""
-    require_device(cfg.device)  # a missing GPU fails here, before the run folder is made
+    check_runnable(cfg)  # a missing GPU or backend fails here, before the run folder is made
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     if not isinstance(scene, Scene):

@@ -24,6 +24,7 @@ from core.config import ConfigError, TrainConfig
 from core.densify import DensifyStrategy
 from core.devices import require_device
 from core.envmap import EnvMap
+from core.errors import BackendUnavailableError
 from core.gaussians import Gaussians
 from core.gbuffer import GBuffer, geometry_depth, render_gbuffer
 from core.init_points import visual_hull_points
@@ -69,13 +70,24 @@ def eval_background(cfg: TrainConfig, device: torch.device) -> Tensor:
     return torch.ones(3, device=device)
 
 
-def check_absgrad(cfg: TrainConfig, device: torch.device) -> None:
-    """Refuse ``densify.absgrad`` up front unless the run will use the CUDA backend."""
-    if cfg.densify.absgrad and resolve_backend(cfg.backend, device) != "cuda":
+def check_runnable(cfg: TrainConfig) -> torch.device:
+    """The run's device, after refusing what this machine cannot train.
+
+    Called before anything is written, so a wrong device or backend leaves no half-made
+    run folder: the device must exist, the backend must run on it, and
+    ``densify.absgrad`` needs the CUDA backend. Errors name the field.
+    """
+    device = require_device(cfg.device)
+    try:
+        backend = resolve_backend(cfg.backend, device)
+    except BackendUnavailableError as exc:
+        raise BackendUnavailableError(f"field 'backend': {exc}") from None
+    if cfg.densify.absgrad and backend != "cuda":
         raise ConfigError(
             "field 'densify.absgrad': AbsGS gradients come from gsplat; it needs "
             f"backend cuda on a CUDA device (this run: backend '{cfg.backend}' on {device})"
         )
+    return device
 
 
 def render_view(
@@ -112,12 +124,11 @@ class Trainer:
     ) -> None:
         if not scene.train:
             raise ValueError("scene has no training views")
-        self.device = require_device(cfg.device)  # before anything is written
+        self.device = check_runnable(cfg)  # before anything is written
         self.scene = scene
         self.cfg = cfg
         self.out = Path(out_dir)
         self.out.mkdir(parents=True, exist_ok=True)
-        check_absgrad(cfg, self.device)
         self.on_event = on_event or (lambda e: None)
         self.should_stop = should_stop or (lambda: False)
         self.progress = progress

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 from pathlib import Path
 
 import pytest
@@ -18,7 +19,7 @@ from core.devices import (
     reopen_placement,
     require_device,
 )
-from core.errors import BackendUnavailableError
+from core.errors import BackendUnavailableError, GlintError
 from core.raster import resolve_backend
 from core.run import train_scene
 from core.synthetic import make_sphere_scene, write_synthetic_scene
@@ -140,3 +141,19 @@ def test_a_worker_without_its_gpu_refuses_to_start(capsys):
 
     assert _cmd_worker(argparse.Namespace(device="cuda:0")) == 2
     assert "option '--device': 'cuda:0' cannot be used here" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(not CPU_ONLY, reason="needs a CPU-only torch build")
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        ({"backend": "cuda"}, "field 'backend': rasteriser backend 'cuda' is unavailable"),
+        ({"densify": {"absgrad": True}}, "field 'densify.absgrad'"),
+    ],
+)
+def test_a_backend_this_machine_lacks_fails_before_writing(tmp_path: Path, overrides, message):
+    scene = make_sphere_scene("glossy", n_train=2, n_test=1, size=16, samples=1)
+    cfg = config_from_dict({"iterations": 2, "init_points": 50, **overrides})
+    with pytest.raises(GlintError, match=re.escape(message)):
+        train_scene(scene, tmp_path / "run", cfg)
+    assert not (tmp_path / "run").exists()
