@@ -22,15 +22,21 @@ Handler = Callable[[argparse.Namespace], int]
 def _cmd_info(args: argparse.Namespace) -> int:
     import torch
 
+    from core.devices import device_problem
     from core.kernel_pool import kernel_threads
     from core.raster import BACKENDS, cpu_simd
 
-    devices = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+    no_cuda = device_problem("cuda")
+    devices = ["cpu"] + ([] if no_cuda else ["cuda"])
+    gpus = [] if no_cuda else [
+        f"cuda:{i} {torch.cuda.get_device_name(i)}" for i in range(torch.cuda.device_count())
+    ]  # fmt: skip
     info = {
         "glint": __version__,
         "torch": torch.__version__,
         "threads": {"torch": torch.get_num_threads(), "kernels": kernel_threads()},
         "devices": devices,
+        "cuda": no_cuda or gpus,
         "backends": {
             name: {d: (ok(torch.device(d)) or "available") for d in devices}
             for name, (ok, _) in BACKENDS.items()

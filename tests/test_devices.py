@@ -157,3 +157,17 @@ def test_a_backend_this_machine_lacks_fails_before_writing(tmp_path: Path, overr
     with pytest.raises(GlintError, match=re.escape(message)):
         train_scene(scene, tmp_path / "run", cfg)
     assert not (tmp_path / "run").exists()
+
+
+def test_glint_info_says_why_there_is_no_gpu_or_lists_them(fake_gpus, monkeypatch, capsys):
+    fake_gpus.n = 0
+    assert main(["info"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["devices"] == ["cpu"] and "no CUDA device is visible" in info["cuda"]
+    fake_gpus.n = 2
+    monkeypatch.setattr(devices.torch.cuda, "get_device_name", lambda i: f"GPU{i}")
+    assert main(["info"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["devices"] == ["cpu", "cuda"]
+    assert info["cuda"] == ["cuda:0 GPU0", "cuda:1 GPU1"]
+    assert "CPU tensors only" in info["backends"]["cpu"]["cuda"]
