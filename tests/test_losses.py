@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from core.cameras import Camera, Intrinsics
@@ -16,6 +17,7 @@ from core.losses import (
     scale_loss,
     single_view_loss,
     ssim,
+    ssim_reference,
 )
 from tests.helpers import identity_camera, rotmat_y
 
@@ -30,6 +32,42 @@ def test_ssim_identity_and_noise():
     assert abs(ssim(img, noisy).item() - s) < 1e-6  # symmetric
     assert rgb_loss(img, img).item() == 0.0
     assert rgb_loss(noisy, img, 1.0).item() == (noisy - img).abs().mean().item()
+
+
+def _ssim_by_hand(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
+    """3DGS's SSIM written out independently of core: 11×11 Gaussian (σ 1.5), zero pad."""
+    import torch.nn.functional as F
+
+    x, y = img.permute(2, 0, 1)[None], ref.permute(2, 0, 1)[None]
+    c = x.shape[1]
+    t = torch.arange(11, dtype=img.dtype) - 5.0
+    g = torch.exp(-(t**2) / 4.5)
+    w = (torch.outer(g, g) / g.sum() ** 2).expand(c, 1, 11, 11).contiguous()
+
+    def blur(m: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(m, w, padding=5, groups=c)
+
+    mx, my = blur(x), blur(y)
+    sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
+    num = (2 * mx * my + 1e-4) * (2 * sxy + 9e-4)
+    return (num / ((mx**2 + my**2 + 1e-4) * (sxx + syy + 9e-4))).mean()
+
+
+@pytest.mark.parametrize(("h", "w", "c"), [(24, 24, 3), (7, 13, 3), (31, 18, 1), (40, 33, 4)])
+def test_separable_ssim_matches_the_2d_window(h: int, w: int, c: int):
+    g = torch.Generator().manual_seed(h * w + c)
+    ref = torch.rand(h, w, c, generator=g, dtype=torch.float64)
+    img = (ref + 0.15 * torch.randn(h, w, c, generator=g, dtype=torch.float64)).clamp(0, 1)
+    a = img.clone().requires_grad_(True)
+    b = img.clone().requires_grad_(True)
+    fast, plain = ssim(a, ref), _ssim_by_hand(b, ref)
+    torch.testing.assert_close(ssim_reference(img, ref), plain.detach(), rtol=0, atol=1e-12)
+    assert 0.1 < float(plain.detach()) < 0.99  # a scene where SSIM is informative
+    torch.testing.assert_close(fast, plain, rtol=0, atol=1e-12)
+    fast.backward()
+    plain.backward()
+    assert a.grad is not None and b.grad is not None
+    torch.testing.assert_close(a.grad, b.grad, rtol=1e-9, atol=1e-14)
 
 
 def test_scale_loss_is_mean_smallest_scale():
