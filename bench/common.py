@@ -50,6 +50,22 @@ def median_time(fn: Callable[[], object], warmup: int = 1, repeat: int = 5, sync
     return statistics.median(times)
 
 
+def interleaved_medians(
+    cases: dict[str, Callable[[], object]], repeat: int, warmup: int = 2
+) -> dict[str, float]:
+    """Median ms of each case, timed in alternation so machine drift hits all alike."""
+    for _ in range(warmup):
+        for fn in cases.values():
+            fn()
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(repeat):
+        for key, fn in cases.items():
+            t0 = time.perf_counter()
+            fn()
+            times[key].append(time.perf_counter() - t0)
+    return {k: statistics.median(v) * 1e3 for k, v in times.items()}
+
+
 def run_isolated(module: str, case: dict) -> dict:
     """Run one case in a fresh interpreter so its peak RSS is its own."""
     proc = subprocess.run(

@@ -13,12 +13,10 @@ defaults to 1: Glint keeps torch on one thread (``core.threads``).
 from __future__ import annotations
 
 import argparse
-import statistics
-import time
 
 import torch
 
-from bench.common import machine_line
+from bench.common import interleaved_medians, machine_line
 from core.losses import ssim, ssim_reference
 
 
@@ -30,28 +28,23 @@ def run(sizes: list[int], repeat: int) -> list[dict]:
         img = (ref + 0.1 * torch.randn(size, size, 3, generator=g)).clamp(0, 1)
         img.requires_grad_(True)
 
-        def fwd(f=ssim):
+        def fwd(f, img=img, ref=ref) -> None:
             with torch.no_grad():
                 f(img, ref)
 
-        def fwd_bwd(f=ssim):
+        def fwd_bwd(f, img=img, ref=ref) -> None:
             f(img, ref).backward()
             img.grad = None
 
-        times: dict[str, list[float]] = {k: [] for k in ("sf", "rf", "sb", "rb")}
-        for _ in range(2):  # warm-up
-            fwd(), fwd(ssim_reference), fwd_bwd(), fwd_bwd(ssim_reference)
-        for _ in range(repeat):  # interleaved, so drift hits both alike
-            for key, fn in (
-                ("sf", fwd),
-                ("rf", lambda: fwd(ssim_reference)),
-                ("sb", fwd_bwd),
-                ("rb", lambda: fwd_bwd(ssim_reference)),
-            ):
-                t0 = time.perf_counter()
-                fn()
-                times[key].append(time.perf_counter() - t0)
-        med = {k: statistics.median(v) * 1e3 for k, v in times.items()}
+        med = interleaved_medians(
+            {
+                "sf": lambda: fwd(ssim),
+                "rf": lambda: fwd(ssim_reference),
+                "sb": lambda: fwd_bwd(ssim),
+                "rb": lambda: fwd_bwd(ssim_reference),
+            },
+            repeat,
+        )
         rows.append({"size": size, **med})
     return rows
 

@@ -1,0 +1,27 @@
+"""bench.ssim_loss and bench.sh_colors run both implementations and report ratios."""
+
+from __future__ import annotations
+
+import math
+
+from bench.ssim_loss import format_table, run
+
+
+def test_ssim_bench_times_both_implementations():
+    rows = run([16, 24], repeat=1)
+    assert [r["size"] for r in rows] == [16, 24]
+    for r in rows:
+        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("sf", "rf", "sb", "rb"))
+    table = format_table(rows)
+    assert "| 24² |" in table and table.count("×") == 4
+
+
+def test_sh_colors_bench_times_both_paths():
+    from bench.sh_colors import format_table as sh_table
+    from bench.sh_colors import run as sh_run
+
+    rows = sh_run([50, 80], repeat=1)
+    assert [r["n"] for r in rows] == [50, 80]
+    for r in rows:
+        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("ff", "tf", "fb", "tb"))
+    assert sh_table(rows).count("×") == 4
