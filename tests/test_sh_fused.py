@@ -106,3 +106,22 @@ def test_threads_split_the_work_without_changing_it():
         outs.append((out.detach(), *_grads(out, [means, dc, rest], torch.ones(1001, 3))))
     for a, b in zip(*outs, strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("degree", [1, 3])
+def test_gradients_match_finite_differences(degree: int):
+    """Independent of the PyTorch path: torch.autograd.gradcheck in float64."""
+    means, dc, rest = _inputs(6, torch.float64, seed=11)
+
+    def colors(m: torch.Tensor, d: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        return sh_colors_fused(degree, d, r, m, CAM)
+
+    assert torch.autograd.gradcheck(colors, (means, dc, rest))
+
+
+def test_no_gaussians():
+    means, dc, rest = _inputs(0, torch.float32, seed=0)
+    out = sh_colors_fused(3, dc, rest, means, CAM)
+    assert out.shape == (0, 3)
+    out.sum().backward()
+    assert means.grad is not None and means.grad.shape == (0, 3)
