@@ -177,6 +177,7 @@ def load_run(
     from core.config import saved_config
     from core.devices import reopen_placement
     from core.errors import GlintError
+    from core.raster import resolve_backend
     from core.scene_io import load_scene
     from core.trainer import CHECKPOINT_NAME, Trainer
 
@@ -193,6 +194,9 @@ def load_run(
     if notes is not None:
         notes.extend(place.notes)
     cfg = cfg.model_copy(update={"device": place.device, "backend": place.backend})
+    if cfg.densify.absgrad and resolve_backend(cfg.backend, cfg.device) != "cuda":
+        # AbsGS only changes how a run densifies; reading one back never densifies
+        cfg = cfg.model_copy(update={"densify": cfg.densify.model_copy(update={"absgrad": False})})
     scene = load_scene(find_run_scene(run, scene_dir), downscale=1.0 / cfg.resolution_scale)
     trainer = Trainer(scene, cfg, run)
     trainer.setup(resume=True)
