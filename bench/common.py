@@ -66,6 +66,57 @@ def interleaved_medians(
     return {k: statistics.median(v) * 1e3 for k, v in times.items()}
 
 
+def fast_vs_plain(
+    fast: Callable[[], torch.Tensor],
+    plain: Callable[[], torch.Tensor],
+    params: tuple[torch.Tensor, ...],
+    weight: torch.Tensor | None,
+    repeat: int,
+) -> dict[str, float]:
+    """Median ms of a fast path and its plain definition, forward (no autograd) and
+    forward + backward (``weight`` the output's gradient; None for a scalar), alternated.
+
+    Keys: ``ff``/``pf`` forward fast/plain, ``fb``/``pb`` forward+backward.
+    """
+
+    def fwd(f: Callable[[], torch.Tensor]) -> None:
+        with torch.no_grad():
+            f()
+
+    def fwd_bwd(f: Callable[[], torch.Tensor]) -> None:
+        f().backward(weight)
+        for p in params:
+            p.grad = None
+
+    return interleaved_medians(
+        {
+            "ff": lambda: fwd(fast),
+            "pf": lambda: fwd(plain),
+            "fb": lambda: fwd_bwd(fast),
+            "pb": lambda: fwd_bwd(plain),
+        },
+        repeat,
+    )
+
+
+def fast_vs_plain_table(rows: list[dict], size_header: str, names: tuple[str, str]) -> str:
+    """Markdown table of :func:`fast_vs_plain` rows (each with a ``label``)."""
+    fast, plain = names
+    lines = [
+        f"Machine: {machine_line()}",
+        "",
+        f"| {size_header} | forward: {fast} | {plain} | ratio | fwd+bwd: {fast} | {plain} "
+        "| ratio |",
+        "|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['label']} | {r['ff']:.2f} ms | {r['pf']:.2f} ms | {r['pf'] / r['ff']:.2f}× "
+            f"| {r['fb']:.2f} ms | {r['pb']:.2f} ms | {r['pb'] / r['fb']:.2f}× |"
+        )
+    return "\n".join(lines)
+
+
 def run_isolated(module: str, case: dict) -> dict:
     """Run one case in a fresh interpreter so its peak RSS is its own."""
     proc = subprocess.run(

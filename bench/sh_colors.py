@@ -15,7 +15,7 @@ import argparse
 
 import torch
 
-from bench.common import interleaved_medians, machine_line
+from bench.common import fast_vs_plain, fast_vs_plain_table
 from core.sh import sh_to_rgb
 from core.sh_fused import sh_colors_fused
 
@@ -29,50 +29,19 @@ def run(sizes: list[int], repeat: int) -> list[dict]:
         means = torch.randn(n, 3, generator=g).requires_grad_(True)
         dc = torch.randn(n, 1, 3, generator=g).requires_grad_(True)
         rest = (0.1 * torch.randn(n, 15, 3, generator=g)).requires_grad_(True)
-        weight = torch.randn(n, 3, generator=g)
-        params = (means, dc, rest)
-
-        def torch_path(means=means, dc=dc, rest=rest) -> torch.Tensor:
-            return sh_to_rgb(3, torch.cat([dc, rest], 1), means - CAMERA.float())
-
-        def fused_path(means=means, dc=dc, rest=rest) -> torch.Tensor:
-            return sh_colors_fused(3, dc, rest, means, CAMERA)
-
-        def fwd(f) -> None:
-            with torch.no_grad():
-                f()
-
-        def fwd_bwd(f, weight=weight, params=params) -> None:
-            f().backward(weight)
-            for p in params:
-                p.grad = None
-
-        med = interleaved_medians(
-            {
-                "ff": lambda: fwd(fused_path),
-                "tf": lambda: fwd(torch_path),
-                "fb": lambda: fwd_bwd(fused_path),
-                "tb": lambda: fwd_bwd(torch_path),
-            },
+        med = fast_vs_plain(
+            lambda m=means, d=dc, r=rest: sh_colors_fused(3, d, r, m, CAMERA),
+            lambda m=means, d=dc, r=rest: sh_to_rgb(3, torch.cat([d, r], 1), m - CAMERA.float()),
+            (means, dc, rest),
+            torch.randn(n, 3, generator=g),
             repeat,
         )
-        rows.append({"n": n, **med})
+        rows.append({"n": n, "label": f"{n:,}", **med})
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = [
-        f"Machine: {machine_line()}",
-        "",
-        "| Gaussians | forward: compiled | PyTorch | ratio | fwd+bwd: compiled | PyTorch | ratio |",
-        "|---:|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['n']:,} | {r['ff']:.2f} ms | {r['tf']:.2f} ms | {r['tf'] / r['ff']:.2f}× "
-            f"| {r['fb']:.2f} ms | {r['tb']:.2f} ms | {r['tb'] / r['fb']:.2f}× |"
-        )
-    return "\n".join(lines)
+    return fast_vs_plain_table(rows, "Gaussians", ("compiled", "PyTorch"))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -16,7 +16,7 @@ import argparse
 
 import torch
 
-from bench.common import interleaved_medians, machine_line
+from bench.common import fast_vs_plain, fast_vs_plain_table
 from core.losses import ssim, ssim_reference
 
 
@@ -27,42 +27,19 @@ def run(sizes: list[int], repeat: int) -> list[dict]:
         ref = torch.rand(size, size, 3, generator=g)
         img = (ref + 0.1 * torch.randn(size, size, 3, generator=g)).clamp(0, 1)
         img.requires_grad_(True)
-
-        def fwd(f, img=img, ref=ref) -> None:
-            with torch.no_grad():
-                f(img, ref)
-
-        def fwd_bwd(f, img=img, ref=ref) -> None:
-            f(img, ref).backward()
-            img.grad = None
-
-        med = interleaved_medians(
-            {
-                "sf": lambda: fwd(ssim),
-                "rf": lambda: fwd(ssim_reference),
-                "sb": lambda: fwd_bwd(ssim),
-                "rb": lambda: fwd_bwd(ssim_reference),
-            },
+        med = fast_vs_plain(
+            lambda img=img, ref=ref: ssim(img, ref),
+            lambda img=img, ref=ref: ssim_reference(img, ref),
+            (img,),
+            None,
             repeat,
         )
-        rows.append({"size": size, **med})
+        rows.append({"size": size, "label": f"{size}²", **med})
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
-    lines = [
-        f"Machine: {machine_line()}",
-        "",
-        "| image | forward: separable | 2D window | ratio | fwd+bwd: separable | 2D window "
-        "| ratio |",
-        "|---|---:|---:|---:|---:|---:|---:|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['size']}² | {r['sf']:.2f} ms | {r['rf']:.2f} ms | {r['rf'] / r['sf']:.2f}× "
-            f"| {r['sb']:.2f} ms | {r['rb']:.2f} ms | {r['rb'] / r['sb']:.2f}× |"
-        )
-    return "\n".join(lines)
+    return fast_vs_plain_table(rows, "image", ("separable", "2D window"))
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -116,6 +116,15 @@ def _coeff(dc, rest, i, j, c):  # pragma: no cover - numba
 
 
 @njit(cache=True, nogil=True, fastmath=False)
+def _expand(dc, rest, i, Y, nb, c):  # pragma: no cover - numba
+    """Σ_j Y_j c_ij for channel c: the colour before the +0.5 and the clamp."""
+    acc = 0.0
+    for j in range(nb):
+        acc += Y[j] * _coeff(dc, rest, i, j, c)
+    return acc
+
+
+@njit(cache=True, nogil=True, fastmath=False)
 def _forward_range(lo, hi, means, campos, dc, rest, degree, rgb):  # pragma: no cover - numba
     nb = (degree + 1) * (degree + 1)
     Y = np.empty(16)
@@ -123,10 +132,7 @@ def _forward_range(lo, hi, means, campos, dc, rest, degree, rgb):  # pragma: no 
         x, y, z, _, _ = _direction(means, campos, i)
         _basis(x, y, z, degree, Y)
         for c in range(3):
-            acc = 0.0
-            for j in range(nb):
-                acc += Y[j] * _coeff(dc, rest, i, j, c)
-            rgb[i, c] = max(acc + 0.5, 0.0)
+            rgb[i, c] = max(_expand(dc, rest, i, Y, nb, c) + 0.5, 0.0)
 
 
 @njit(cache=True, nogil=True, fastmath=False)
@@ -141,12 +147,9 @@ def _backward_range(
     for i in range(lo, hi):
         x, y, z, r, unclamped = _direction(means, campos, i)
         _basis(x, y, z, degree, Y)
-        for c in range(3):
-            acc = 0.0
-            for j in range(nb):
-                acc += Y[j] * _coeff(dc, rest, i, j, c)
-            # clamp_min passes the gradient at and above 0
-            g[c] = float(g_rgb[i, c]) if acc + 0.5 >= 0.0 else 0.0
+        for c in range(3):  # clamp_min passes the gradient at and above 0
+            kept = _expand(dc, rest, i, Y, nb, c) + 0.5 >= 0.0
+            g[c] = float(g_rgb[i, c]) if kept else 0.0
         for c in range(3):
             g_dc[i, 0, c] = Y[0] * g[c]
             for j in range(1, nb):

@@ -11,7 +11,7 @@ def test_ssim_bench_times_both_implementations():
     rows = run([16, 24], repeat=1)
     assert [r["size"] for r in rows] == [16, 24]
     for r in rows:
-        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("sf", "rf", "sb", "rb"))
+        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("ff", "pf", "fb", "pb"))
     table = format_table(rows)
     assert "| 24² |" in table and table.count("×") == 4
 
@@ -23,5 +23,5 @@ def test_sh_colors_bench_times_both_paths():
     rows = sh_run([50, 80], repeat=1)
     assert [r["n"] for r in rows] == [50, 80]
     for r in rows:
-        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("ff", "tf", "fb", "tb"))
+        assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("ff", "pf", "fb", "pb"))
     assert sh_table(rows).count("×") == 4
