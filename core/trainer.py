@@ -267,19 +267,23 @@ class Trainer:
             max_sh_degree=int(self.plan.sh_degree.value),
         )
 
-    def _grads_ok(self) -> bool:
-        """Every gradient finite *and* below √(dtype max): a finite gradient whose square
-        overflows would put Inf into Adam's second moment, freeze that parameter for
-        good and make every later checkpoint refuse to save (NaN-free by contract)."""
+    def _gradient_ratios(self) -> list[Tensor]:
+        """Each parameter's max |gradient| over √(dtype max), as 0-dim tensors.
+
+        A gradient is usable when its ratio is < 1: finite *and* below √max, since a
+        finite gradient whose square overflows would put Inf into Adam's second
+        moment, freeze that parameter for good and make every later checkpoint refuse
+        to save (NaN-free by contract). NaN compares False, so it fails too.
+        """
+        ratios = []
         for o in self.optimizers.values():
             for grp in o.param_groups:
                 for p in grp["params"]:
                     if p.grad is None or p.grad.numel() == 0:
                         continue
                     limit = math.sqrt(torch.finfo(p.grad.dtype).max)
-                    if not float(p.grad.abs().amax()) < limit:  # NaN compares False
-                        return False
-        return True
+                    ratios.append(p.grad.detach().abs().amax().float() / limit)
+        return ratios
 
     def step(self) -> dict[str, float]:
         cfg, it = self.cfg, self.iteration
@@ -327,10 +331,13 @@ class Trainer:
         loss = sum(terms.values())
         for o in self.optimizers.values():
             o.zero_grad(set_to_none=True)
-        ok = bool(torch.isfinite(loss))
-        if ok:
-            loss.backward()
-            ok = self._grads_ok()
+        values = [t.detach().float() for t in (*terms.values(), loss)]
+        loss.backward()  # a non-finite loss gives non-finite gradients: caught below
+        # One host read-back per step for the loss values and the NaN guard together:
+        # on a GPU each read is a sync, and one per parameter stalled the queue 8 times.
+        host = torch.stack(values + self._gradient_ratios()).tolist()
+        losses, ratios = host[: len(values)], host[len(values) :]
+        ok = math.isfinite(losses[-1]) and all(r < 1.0 for r in ratios)
         if not ok:
             # The NaN guard: a non-finite loss or gradient never reaches the parameters.
             self.skipped_steps += 1
@@ -348,8 +355,8 @@ class Trainer:
             self.gaussians, self.optimizers, res, it, view.camera.width, view.camera.height
         )
         self.iteration += 1
-        out = {k: float(v.detach()) for k, v in terms.items()}
-        out["total"] = float(loss.detach())
+        out = dict(zip(terms, losses[:-1], strict=True))
+        out["total"] = losses[-1]
         out.update({f"densify_{k}": float(v) for k, v in stats.items() if v})
         return out
 
