@@ -31,6 +31,16 @@ def _gaussian_blur(maps: Tensor, taps: Tensor) -> Tensor:
     return F.conv2d(rows, taps.view(1, 1, n, 1).expand(k, 1, n, 1), padding=(pad, 0), groups=k)
 
 
+def _mean_ssim(mu_x: Tensor, mu_y: Tensor, exx: Tensor, eyy: Tensor, exy: Tensor) -> Tensor:
+    """Mean SSIM from the blurred moments (means, E[x²], E[y²], E[xy])."""
+    sxx = exx - mu_x**2
+    syy = eyy - mu_y**2
+    sxy = exy - mu_x * mu_y
+    num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * sxy + _SSIM_C2)
+    den = (mu_x**2 + mu_y**2 + _SSIM_C1) * (sxx + syy + _SSIM_C2)
+    return (num / den).mean()
+
+
 def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
     """Mean SSIM of two (H, W, C) images, 3DGS's variant: 11×11 Gaussian, zero padding.
 
@@ -45,12 +55,7 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
     taps = _gaussian_taps(window, sigma, x)
     mu_x, exx, exy = _gaussian_blur(torch.cat([x, x * x, x * y])[None], taps)[0].split(c)
     mu_y, eyy = _gaussian_blur(torch.cat([y, y * y])[None], taps)[0].split(c)
-    sxx = exx - mu_x**2
-    syy = eyy - mu_y**2
-    sxy = exy - mu_x * mu_y
-    num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * sxy + _SSIM_C2)
-    den = (mu_x**2 + mu_y**2 + _SSIM_C1) * (sxx + syy + _SSIM_C2)
-    return (num / den).mean()
+    return _mean_ssim(mu_x, mu_y, exx, eyy, exy)
 
 
 def ssim_reference(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
@@ -64,13 +69,7 @@ def ssim_reference(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.
     def blur(m: Tensor) -> Tensor:
         return F.conv2d(m, w, padding=window // 2, groups=c)
 
-    mu_x, mu_y = blur(x), blur(y)
-    sxx = blur(x * x) - mu_x**2
-    syy = blur(y * y) - mu_y**2
-    sxy = blur(x * y) - mu_x * mu_y
-    num = (2 * mu_x * mu_y + _SSIM_C1) * (2 * sxy + _SSIM_C2)
-    den = (mu_x**2 + mu_y**2 + _SSIM_C1) * (sxx + syy + _SSIM_C2)
-    return (num / den).mean()
+    return _mean_ssim(blur(x), blur(y), blur(x * x), blur(y * y), blur(x * y))
 
 
 def rgb_loss(img: Tensor, ref: Tensor, l1_weight: float = 0.8) -> Tensor:

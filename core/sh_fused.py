@@ -183,7 +183,7 @@ class FusedSH(torch.autograd.Function):
         n = means.shape[0]
         cam = campos.detach().to(torch.float64).numpy()
         arrays = (_np(means), cam, _np(sh_dc), _np(sh_rest), degree)
-        rgb = np.empty((n, 3), torch.empty(0, dtype=sh_dc.dtype).numpy().dtype)
+        rgb = np.empty((n, 3), arrays[2].dtype)
         run_ranges(_forward_range, n, (*arrays, rgb))
         ctx.save_for_backward(means, sh_dc, sh_rest)  # refuses a backward after in-place edits
         ctx.arrays = arrays
@@ -192,17 +192,17 @@ class FusedSH(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_rgb):
-        means, sh_dc, sh_rest = ctx.saved_tensors
-        n = means.shape[0]
+        ctx.saved_tensors  # noqa: B018  (raises if an input was modified in place)
+        m, _, dc, rest, degree = ctx.arrays
+        n = m.shape[0]
         need = ctx.needs_input_grad
-        g_means = np.zeros((n if need[0] else 0, 3), _np(means).dtype)
-        g_dc = np.empty(tuple(sh_dc.shape), _np(sh_dc).dtype)
+        g_means = np.zeros((n if need[0] else 0, 3), m.dtype)
+        g_dc = np.empty(dc.shape, dc.dtype)
         # rows above the degree in use get no gradient: zeros, as the PyTorch path;
         # at full degree the kernel writes every row and zeroing would be wasted
-        degree = ctx.arrays[4]
-        alloc = np.empty if sh_rest.shape[1] == (degree + 1) ** 2 - 1 else np.zeros
-        g_rest = alloc(tuple(sh_rest.shape), _np(sh_rest).dtype)
-        args = (*ctx.arrays, _np(g_rgb.to(sh_dc.dtype)), g_means, g_dc, g_rest)
+        alloc = np.empty if rest.shape[1] == (degree + 1) ** 2 - 1 else np.zeros
+        g_rest = alloc(rest.shape, rest.dtype)
+        args = (*ctx.arrays, _np(g_rgb).astype(dc.dtype, copy=False), g_means, g_dc, g_rest)
         run_ranges(_backward_range, n, args)
         return (
             torch.from_numpy(g_means) if need[0] else None,
