@@ -28,7 +28,7 @@ from typing import BinaryIO
 
 from api.paths import UnsafePathError, clean_relpath
 from api.problems import ApiError
-from api.store import ArtifactStore
+from api.service.store import ArtifactStore
 from api.uploads import Staged, StagedSet, too_large
 
 RATIO_FLOOR_BYTES = 1 << 20  # ratios are only judged above this many uncompressed bytes

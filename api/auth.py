@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from sqlalchemy import select
 from sqlalchemy.orm import Session
 
-from api.models import ApiKey, new_id
+from api.service.models import ApiKey, new_id
 
 KEY_PREFIX = "glk_"
 

@@ -11,11 +11,11 @@ import sys
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from api.settings import Settings
+    from api.service.settings import Settings
 
 
 def _settings(args: argparse.Namespace) -> Settings:
-    from api.settings import Settings
+    from api.service.settings import Settings
 
     overrides = {}
     if getattr(args, "data_dir", None):
@@ -46,8 +46,8 @@ def _cmd_serve(args: argparse.Namespace) -> int:
 
 def _cmd_keys_create(args: argparse.Namespace) -> int:
     from api.auth import create_key
-    from api.db import Database
-    from api.migrate import upgrade
+    from api.service.db import Database
+    from api.service.migrate import upgrade
 
     settings = _settings(args)
     database = Database(settings.db_url)

@@ -16,11 +16,11 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api import auth
-from api.db import Database
 from api.problems import ApiError
-from api.queue import JobQueue
-from api.settings import Settings
-from api.store import ArtifactStore
+from api.service.db import Database
+from api.service.queue import JobQueue
+from api.service.settings import Settings
+from api.service.store import ArtifactStore
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `glint keys create`")
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})

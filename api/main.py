@@ -16,15 +16,15 @@ from sqlalchemy import update
 
 import viewer_web
 from api.auth import PrincipalCache
-from api.db import Database
-from api.jobs_runner import requeue_orphans
-from api.migrate import upgrade
-from api.models import Scene, SceneState
 from api.problems import PROBLEM_JSON, install_handlers
-from api.queue import JobQueue, LocalQueue, make_queue
 from api.routers import artifacts, jobs, keys, scenes, viewer, workers
-from api.settings import Settings, get_settings
-from api.store import ArtifactStore, LocalStore
+from api.service.db import Database
+from api.service.migrate import upgrade
+from api.service.models import Scene, SceneState
+from api.service.queue import JobQueue, LocalQueue, make_queue
+from api.service.recovery import requeue_orphans
+from api.service.settings import Settings, apply_to_core, get_settings
+from api.service.store import ArtifactStore, LocalStore
 from api.timing import ServerTimingMiddleware
 
 log = logging.getLogger("glint.api")
@@ -84,10 +84,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
-        if settings.kernel_threads is not None:  # also read from a .env file
-            from core.threads import configure_cpu_threads
-
-            configure_cpu_threads(settings.kernel_threads)
+        apply_to_core(settings)  # kernel threads, native kernels (also from a .env file)
         database = Database(settings.db_url)
         if settings.auto_migrate:
             upgrade(database.engine)

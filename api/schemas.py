@@ -1,4 +1,4 @@
-"""Request and response bodies (kept apart from the database models in api.models)."""
+"""Request and response bodies (kept apart from the database models in api.service.models)."""
 
 from __future__ import annotations
 

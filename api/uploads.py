@@ -21,7 +21,7 @@ from starlette.requests import ClientDisconnect, Request
 
 from api.paths import UnsafePathError, clean_relpath
 from api.problems import ApiError, FieldError
-from api.store import ArtifactStore, PendingWrite
+from api.service.store import ArtifactStore, PendingWrite
 
 MULTIPART_OVERHEAD = 64 * 1024  # headers and boundaries allowed on top of the file bytes
 

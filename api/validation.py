@@ -55,7 +55,7 @@ def _report(summary: dict[str, Any]) -> dict[str, Any]:
 def validate_scene(root: Path) -> dict[str, Any]:
     """Load the scene under ``root`` (format detected); its report or an :class:`ApiError`."""
     from core.errors import SceneError
-    from core.scene_io import load_scene
+    from core.scene.formats import load_scene
 
     try:
         scene = load_scene(root)

@@ -5,8 +5,8 @@ from __future__ import annotations
 from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
-from api.models import Job, JobState, Scene, SceneFile
 from api.schemas import JobOut, SceneOut
+from api.service.models import Job, JobState, Scene, SceneFile
 
 
 def scene_totals(session: Session, scene_ids: list[str]) -> dict[str, tuple[int, int]]:

@@ -68,9 +68,9 @@ def seed(data_dir: Path) -> tuple[str, str]:
     """
     sys.path.insert(0, str(REPO))
     from api.auth import create_key
-    from api.db import Database
-    from api.migrate import upgrade
-    from api.models import Job, Scene, new_id
+    from api.service.db import Database
+    from api.service.migrate import upgrade
+    from api.service.models import Job, Scene, new_id
 
     db = Database(f"sqlite:///{data_dir / 'glint.db'}")
     upgrade(db.engine)

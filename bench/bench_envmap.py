@@ -16,10 +16,10 @@ import dataclasses
 import torch
 
 from bench.common import machine_line, median_time
-from core.cameras import Camera, Intrinsics
-from core.envmap import EnvMap
-from core.gbuffer import GBuffer
-from core.shading import deferred_shade
+from core.render.envmap import EnvMap
+from core.render.gbuffer import GBuffer
+from core.render.shading import deferred_shade
+from core.scene.cameras import Camera, Intrinsics
 
 
 def sphere_gbuffer(size: int, device: str) -> GBuffer:

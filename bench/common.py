@@ -14,7 +14,7 @@ from datetime import date
 
 import torch
 
-from core.cameras import Camera, Intrinsics
+from core.scene.cameras import Camera, Intrinsics
 
 
 def random_gaussians(n: int, seed: int = 0, device: str = "cpu", channels: int = 8):

@@ -25,15 +25,15 @@ import torch
 
 from bench.common import bench_camera, machine_line, peak_rss_mib, random_gaussians
 from bench.viewer import sphere_model
-from core.cameras import Camera, Intrinsics
-from core.envmap import EnvMap, texel_directions
-from core.gbuffer import gbuffer_features, near_plane, render_gbuffer_tensors
-from core.kernel_pool import kernel_threads
-from core.raster import PROJECTORS, bin_gaussians, cpu_simd
-from core.raster.cpu_backend import rasterize_cpu
-from core.shading import deferred_shade
-from core.synthetic import default_env
-from core.threads import configure_cpu_threads
+from core.kernels.pool import kernel_threads
+from core.kernels.threads import configure_cpu_threads
+from core.render.envmap import EnvMap, texel_directions
+from core.render.gbuffer import gbuffer_features, near_plane, render_gbuffer_tensors
+from core.render.raster import PROJECTORS, bin_gaussians, cpu_simd
+from core.render.raster.cpu import rasterize_cpu
+from core.render.shading import deferred_shade
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.synthetic import default_env
 
 
 def _interleaved(stages: dict[str, Callable[[], object]], repeat: int) -> dict[str, list[float]]:
@@ -69,7 +69,7 @@ def _sphere_scene(n: int, size: int) -> dict:
 
 
 def _blob_scene(n: int, size: int) -> dict:
-    from core.raster import covariances_from
+    from core.render.raster import covariances_from
 
     means, quats, scales, opac, feats = random_gaussians(n, channels=8)
     env = EnvMap(64, init_value=0.5).requires_grad_(False)

@@ -27,8 +27,8 @@ from bench.common import (
     random_gaussians,
     run_isolated,
 )
-from core.kernel_pool import kernel_threads
-from core.raster import (
+from core.kernels.pool import kernel_threads
+from core.render.raster import (
     BACKENDS,
     PROJECTORS,
     bin_gaussians,
@@ -84,7 +84,7 @@ def run_case(case: dict) -> dict:
     size, n, backend = case["size"], case["n"], case["backend"]
     channels = case.get("channels", 8)
     if case.get("split_threads"):
-        from core.threads import configure_cpu_threads
+        from core.kernels.threads import configure_cpu_threads
 
         configure_cpu_threads(case.get("threads") or None)
     elif case.get("threads"):
@@ -134,7 +134,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--split-threads",
         action="store_true",
-        help="Glint's process layout (core.threads): torch on one thread, the compiled "
+        help="Glint's process layout (core.kernels.threads): torch on one thread, the compiled "
         "kernels on --threads (default: every usable CPU)",
     )
     ap.add_argument(

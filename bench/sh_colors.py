@@ -4,7 +4,7 @@
 
 ``Gaussians.colors`` runs once per rendered view: in every training step (with
 gradients for the coefficients and the centres) and in every viewer frame (without).
-``core.sh_fused.sh_colors_fused`` is what it runs on CPU; ``core.sh.sh_to_rgb`` is
+``core.render.sh_compiled.sh_colors_fused`` is what it runs on CPU; ``core.render.sh.sh_to_rgb`` is
 the PyTorch definition it is tested against. Both run in one process, alternately,
 in Glint's thread layout (torch on one thread, the compiled kernels on ``--threads``).
 """
@@ -16,8 +16,8 @@ import argparse
 import torch
 
 from bench.common import fast_vs_plain, fast_vs_plain_table
-from core.sh import sh_to_rgb
-from core.sh_fused import sh_colors_fused
+from core.render.sh import sh_to_rgb
+from core.render.sh_compiled import sh_colors_compiled
 
 CAMERA = torch.tensor([0.0, -3.0, 0.5], dtype=torch.float64)
 
@@ -30,7 +30,7 @@ def run(sizes: list[int], repeat: int) -> list[dict]:
         dc = torch.randn(n, 1, 3, generator=g).requires_grad_(True)
         rest = (0.1 * torch.randn(n, 15, 3, generator=g)).requires_grad_(True)
         med = fast_vs_plain(
-            lambda m=means, d=dc, r=rest: sh_colors_fused(3, d, r, m, CAMERA),
+            lambda m=means, d=dc, r=rest: sh_colors_compiled(3, d, r, m, CAMERA),
             lambda m=means, d=dc, r=rest: sh_to_rgb(3, torch.cat([d, r], 1), m - CAMERA.float()),
             (means, dc, rest),
             torch.randn(n, 3, generator=g),
@@ -45,7 +45,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def main(argv: list[str] | None = None) -> None:
-    from core.threads import configure_cpu_threads
+    from core.kernels.threads import configure_cpu_threads
 
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter

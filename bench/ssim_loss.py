@@ -3,11 +3,11 @@
     python -m bench.ssim_loss [--sizes 128 256 512 800] [--threads 1] [--repeat 15]
 
 Every training step evaluates ``rgb_loss``, whose D-SSIM blurs five local moments
-with 3DGS's 11×11 Gaussian window. ``core.losses.ssim`` does it with one grouped,
+with 3DGS's 11×11 Gaussian window. ``core.evaluation.ssim.ssim`` does it with one grouped,
 separable convolution; ``ssim_reference`` is the plain definition (five 2D
 convolutions). Both run in the same process, alternately, on the same images,
 forward only and forward + backward (gradient for the rendered image). ``--threads``
-defaults to 1: Glint keeps torch on one thread (``core.threads``).
+defaults to 1: Glint keeps torch on one thread (``core.kernels.threads``).
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ import argparse
 import torch
 
 from bench.common import fast_vs_plain, fast_vs_plain_table
-from core.losses import ssim, ssim_reference
+from core.evaluation.ssim import ssim, ssim_reference
 
 
 def run(sizes: list[int], repeat: int) -> list[dict]:

@@ -29,15 +29,15 @@ from collections.abc import Callable
 import torch
 
 from bench.common import bench_camera, machine_line, median_time, peak_rss_mib
-from core.cameras import Camera
 from core.config import TrainConfig
-from core.envmap import EnvMap
-from core.gaussians import Gaussians
-from core.gbuffer import geometry_depth, render_gbuffer
-from core.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
-from core.optim import make_optimizers
-from core.raster import rasterize, resolve_backend
-from core.shading import deferred_shade
+from core.render.envmap import EnvMap
+from core.render.gaussians import Gaussians
+from core.render.gbuffer import geometry_depth, render_gbuffer
+from core.render.raster import rasterize, resolve_backend
+from core.render.shading import deferred_shade
+from core.scene.cameras import Camera
+from core.training.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
+from core.training.optim import make_optimizers
 
 
 def neighbour_camera(cam: Camera, degrees: float = 10.0) -> Camera:
@@ -64,7 +64,7 @@ def make_gaussians(n: int, device: torch.device, seed: int = 0) -> Gaussians:
 def plain_render(gs: Gaussians, cam: Camera, backend: str) -> torch.Tensor:
     """The 3DGS baseline image (H, W, 3) over a white background."""
     if backend == "cuda":
-        from core.raster.cuda_backend import camera_matrices, gsplat_rasterization
+        from core.render.raster.cuda import camera_matrices, gsplat_rasterization
 
         viewmats, Ks = camera_matrices(cam, torch.float32, gs.device)
         sh = torch.cat([gs.params["sh_dc"], gs.params["sh_rest"]], dim=1)
@@ -83,7 +83,7 @@ def plain_render(gs: Gaussians, cam: Camera, backend: str) -> torch.Tensor:
 def run(args: argparse.Namespace) -> dict:
     device = torch.device(args.device)
     if args.split_threads:
-        from core.threads import configure_cpu_threads
+        from core.kernels.threads import configure_cpu_threads
 
         configure_cpu_threads(args.threads or None)
     elif args.threads:
@@ -207,7 +207,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--split-threads",
         action="store_true",
-        help="Glint's process layout (core.threads): torch on one thread, the compiled "
+        help="Glint's process layout (core.kernels.threads): torch on one thread, the compiled "
         "kernels on --threads (default: every usable CPU)",
     )
     ap.add_argument("--json", help="also write the results here")

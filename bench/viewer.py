@@ -30,14 +30,14 @@ from fastapi import FastAPI
 from websockets.sync.client import connect
 
 import viewer_web
-from core.checkpoint import save_checkpoint
 from core.config import TrainConfig
-from core.envmap import EnvMap, texel_directions
-from core.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
-from core.kernel_pool import kernel_threads
-from core.sh import rgb_to_sh0
-from core.synthetic import albedo, default_env, surface_points
-from core.threads import configure_cpu_threads
+from core.kernels.pool import kernel_threads
+from core.kernels.threads import configure_cpu_threads
+from core.model.checkpoint import save_checkpoint
+from core.render.envmap import EnvMap, texel_directions
+from core.render.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
+from core.render.sh import rgb_to_sh0
+from core.scene.synthetic import albedo, default_env, surface_points
 from viewer_web.protocol import unpack_frame
 
 

@@ -23,8 +23,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
     import torch
 
     from core.devices import device_problem
-    from core.kernel_pool import kernel_threads
-    from core.raster import BACKENDS, cpu_simd
+    from core.kernels.pool import kernel_threads
+    from core.render.raster import BACKENDS, cpu_simd
 
     no_cuda = device_problem("cuda")
     devices = ["cpu"] + ([] if no_cuda else ["cuda"])
@@ -48,7 +48,7 @@ def _cmd_info(args: argparse.Namespace) -> int:
 
 
 def _cmd_validate(args: argparse.Namespace) -> int:
-    from core.scene_io import load_scene
+    from core.scene.formats import load_scene
 
     scene = load_scene(args.scene, downscale=args.downscale)
     print(json.dumps(scene.summary(), indent=2))
@@ -121,7 +121,7 @@ def _add_train_args(p: argparse.ArgumentParser) -> None:
 
 
 def _cmd_train(args: argparse.Namespace) -> int:
-    from core.run import train_scene
+    from core.training.run import train_scene
 
     cfg = _train_config(args)
     result, summary = train_scene(
@@ -145,8 +145,8 @@ DEMO_DEFAULTS = {
 
 
 def _cmd_demo(args: argparse.Namespace) -> int:
-    from core.run import train_scene
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
+    from core.training.run import train_scene
 
     out = Path(args.out)
     scene_dir = out / "scene"
@@ -225,21 +225,26 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
 def _set_threads(n: int | None) -> None:
     """``--threads N``: the compiled kernels' thread count (torch stays on one)."""
     if n:
-        from core.threads import configure_cpu_threads
+        from core.kernels.threads import configure_cpu_threads
 
         configure_cpu_threads(n)
 
 
 def _cmd_mesh(args: argparse.Namespace) -> int:
-    from core.mesh import DEFAULT_RESOLUTION, mesh_run
-    from core.outputs import load_run
+    from core.meshing.mesh import mesh_model
+    from core.meshing.tsdf import DEFAULT_RESOLUTION
+    from core.model.run_folder import open_run
 
     _set_threads(args.threads)
     notes: list[str] = []
-    trainer = load_run(args.run, args.scene, device=args.device, backend=args.backend, notes=notes)
+    model, scene = open_run(
+        args.run, args.scene, device=args.device, backend=args.backend, notes=notes
+    )
     _print_notes(notes)
-    _, info = mesh_run(
-        trainer,
+    _, info = mesh_model(
+        model,
+        scene.train,
+        args.run,
         voxel=args.voxel,
         trunc=args.trunc,
         resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
@@ -263,7 +268,7 @@ def _print_notes(notes: list[str]) -> None:
 
 
 def _cmd_eval(args: argparse.Namespace) -> int:
-    from core.bench import evaluate_run
+    from core.evaluation.evaluate import evaluate_run
 
     _set_threads(args.threads)
     notes: list[str] = []
@@ -286,7 +291,8 @@ def _cmd_eval(args: argparse.Namespace) -> int:
 
 
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from core.bench import parse_configs, run_bench
+    from core.benchmark.configs import parse_configs
+    from core.benchmark.runner import run_bench
 
     _set_threads(args.threads)
     path = run_bench(
@@ -343,7 +349,8 @@ def _nested(flat: dict) -> dict:
 
 
 def _register_eval(sub: argparse._SubParsersAction) -> None:
-    from core.bench import CONFIGS, DEFAULT_CHAMFER_POINTS
+    from core.benchmark.configs import CONFIGS
+    from core.evaluation.geometry import DEFAULT_CHAMFER_POINTS
 
     threads = {
         "type": int,
@@ -453,7 +460,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
-        from core.threads import configure_cpu_threads
+        from core.kernels.threads import configure_cpu_threads
 
         try:
             configure_cpu_threads()

@@ -1,17 +1,16 @@
-"""Which torch device a run may use here, and where a finished run is reopened.
+"""Which torch device a run may use here.
 
 A run records the device and rasteriser backend of the machine that trained it: a
 GPU worker writes ``cuda``. Training must refuse a device this machine lacks with a
 message naming the field (not torch's "Torch not compiled with CUDA enabled" from
 deep inside a step), while tools that only read a finished run (``glint mesh``,
 ``glint eval``, the viewer) should still work on a laptop: they fall back to the CPU
-and to a backend that runs there, and say so.
+and to a backend that runs there, and say so (``core.model.placement``).
 """
 
 from __future__ import annotations
 
 import re
-from dataclasses import dataclass, field
 
 import torch
 
@@ -54,42 +53,3 @@ def require_device(name: str, field_name: str = "device") -> torch.device:
     if reason is not None:
         raise DeviceUnavailableError(f"{what}: '{name}' cannot be used here: {reason}; use 'cpu'")
     return torch.device(name)
-
-
-@dataclass
-class Placement:
-    """Device and backend to reopen a run with, and what changed from its record."""
-
-    device: str
-    backend: str
-    notes: list[str] = field(default_factory=list)
-
-
-def reopen_placement(
-    device: str, backend: str, *, device_override: str | None = None,
-    backend_override: str | None = None,
-) -> Placement:  # fmt: skip
-    """Where to reopen a run recorded with ``device``/``backend`` on this machine.
-
-    Overrides are the user's explicit choice and must work here (errors otherwise);
-    the recorded values are kept where they work and replaced, with a note, where not.
-    """
-    from core.raster import fallback_backend, resolve_backend
-
-    notes: list[str] = []
-    if device_override is not None:
-        dev = str(require_device(device_override, "--device"))
-    elif DEVICE_RE.match(device) and device_problem(device) is None:
-        dev = device
-    else:
-        reason = device_problem(device) if DEVICE_RE.match(device) else "not a device"
-        notes.append(
-            f"the run trained on '{device}', which this machine lacks ({reason}); using cpu"
-        )
-        dev = "cpu"
-    if backend_override is not None:
-        return Placement(dev, resolve_backend(backend_override, dev), notes)
-    chosen, why = fallback_backend(backend, dev)
-    if why is not None:
-        notes.append(f"{why}; rendering with '{chosen}'")
-    return Placement(dev, backend if why is None else chosen, notes)

@@ -8,7 +8,7 @@
 #
 # Stages:
 #   build    python slim + pip + gcc: a venv in /opt/venv with CPU torch, glint, psycopg,
-#            and glint's C kernels prebuilt for each x86-64 level (core/native_build.py)
+#            and glint's C kernels prebuilt for each x86-64 level (core/kernels/native_build.py)
 #   runtime  python slim + that venv; no compiler, no pip cache, no sources
 #
 # Base image pinned by tag. Pin the digest too when you cut a release:
@@ -41,7 +41,7 @@ COPY . .
 # project's "postgres" extra, spelled out so the version range is pinned here too).
 RUN pip install . "psycopg[binary]>=3.1,<4" \
     && glint --help >/dev/null \
-    && python -m core.native_build --prebuild /opt/venv/share/glint-native
+    && python -m core.kernels.native_build --prebuild /opt/venv/share/glint-native
 
 FROM python:3.11.11-slim-bookworm AS runtime
 LABEL org.opencontainers.image.title="glint-api" \

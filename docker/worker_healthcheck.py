@@ -21,9 +21,9 @@ from datetime import UTC, datetime
 def main() -> int:
     from sqlalchemy import select
 
-    from api.db import Database
-    from api.models import Worker
-    from api.settings import Settings
+    from api.service.db import Database
+    from api.service.models import Worker
+    from api.service.settings import Settings
 
     host = socket.gethostname()
     database = Database(Settings().db_url)

@@ -18,7 +18,7 @@ torch.set_num_threads(1)
 def _one_thread_layout():
     """Undo a CLI test's ``configure_cpu_threads`` (main() applies it) after each test."""
     yield
-    from core.kernel_pool import set_kernel_threads
+    from core.kernels.pool import set_kernel_threads
 
     set_kernel_threads(None)
     torch.set_num_threads(1)

@@ -19,8 +19,8 @@ import pytest
 import torch
 from torch import Tensor
 
-from core.raster import Projected, bin_gaussians
-from core.raster.reference import rasterize_reference
+from core.render.raster import Projected, bin_gaussians
+from core.render.raster.reference import rasterize_reference
 
 
 def _sh_colors(
@@ -96,8 +96,8 @@ def gsplat_twin(
 def twin_as_cuda(monkeypatch: pytest.MonkeyPatch) -> None:
     """``backend="cuda"`` resolves on this machine and runs :func:`gsplat_twin`."""
     pytest.importorskip("gsplat.cuda._torch_impl")
-    import core.raster as raster
-    from core.raster import cuda_backend
+    import core.render.raster as raster
+    from core.render.raster import cuda as cuda_backend
 
     _, composite = raster.BACKENDS["cuda"]
     monkeypatch.setitem(raster.BACKENDS, "cuda", (lambda device: None, composite))

@@ -6,7 +6,7 @@ import math
 
 import torch
 
-from core.cameras import Camera, Intrinsics
+from core.scene.cameras import Camera, Intrinsics
 
 
 def identity_camera(size: int = 32, f: float | None = None, dtype=torch.float64) -> Camera:

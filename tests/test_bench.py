@@ -9,17 +9,12 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from core.bench import (
-    CONFIGS,
-    EVAL_FILE,
-    bench_config,
-    mean_curve,
-    parse_configs,
-    results_table,
-)
+from core.benchmark.configs import CONFIGS, bench_config, parse_configs
+from core.benchmark.tables import mean_curve, results_table
 from core.cli import main
 from core.errors import GlintError
-from core.synthetic import SPHERE_RADIUS, surface_points, write_synthetic_scene
+from core.evaluation.evaluate import EVAL_FILE
+from core.scene.synthetic import SPHERE_RADIUS, surface_points, write_synthetic_scene
 
 BUDGET = 12
 SMALL = [
@@ -130,7 +125,7 @@ def test_a_cell_from_another_configuration_is_not_reused(bench_run) -> None:
 
 def test_interrupted_cell_resumes_from_its_checkpoint(bench_run, tmp_path) -> None:
     """A cell stopped mid-training is trained on from its checkpoint, not restarted."""
-    from core.run import train_scene
+    from core.training.run import train_scene
 
     scene, _ = bench_run
     out = tmp_path / "out"
@@ -175,7 +170,7 @@ def test_glint_eval_and_mesh_commands_on_a_run(bench_run, capsys) -> None:
 
 def test_eval_needs_a_checkpoint_and_a_scene(tmp_path) -> None:
     with pytest.raises(GlintError, match="checkpoint"):
-        from core.bench import evaluate_run
+        from core.evaluation.evaluate import evaluate_run
 
         evaluate_run(tmp_path)
     assert main(["eval", str(tmp_path)]) == 2

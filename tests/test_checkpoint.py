@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-import core.checkpoint as ckpt_mod
-from core.checkpoint import (
+import core.model.checkpoint as ckpt_mod
+from core.model.checkpoint import (
     CHECKPOINT_FORMAT,
     CHECKPOINT_VERSION,
     CheckpointError,
@@ -18,7 +18,7 @@ from core.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from core.gaussians import PARAM_SHAPES, Gaussians
+from core.render.gaussians import PARAM_SHAPES, Gaussians
 
 
 def random_gaussians(n: int = 16, seed: int = 0) -> Gaussians:

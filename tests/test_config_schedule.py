@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 
 from core.config import ConfigError, config_from_dict, load_config
-from core.schedule import Marks, phase_at
+from core.model.schedule import Marks, phase_at
 
 
 def test_defaults_are_the_papers():
@@ -127,7 +127,8 @@ def test_load_yaml_json_and_overrides(tmp_path):
     ],
 )
 def test_last_opacity_reset_matches_the_strategy(over):
-    from core.densify import DensifyStrategy, last_opacity_reset
+    from core.model.schedule import last_opacity_reset
+    from core.training.densify import DensifyStrategy
 
     cfg = config_from_dict(over)
     s = DensifyStrategy(cfg, 1.0)
@@ -139,7 +140,7 @@ def test_last_opacity_reset_matches_the_strategy(over):
 
 
 def test_geometry_losses_pause_after_each_reset():
-    from core.schedule import geometry_paused
+    from core.model.schedule import geometry_paused
 
     cfg = config_from_dict({"iterations": 30000})
     resets = [3000, 6000, 9000, 12000]

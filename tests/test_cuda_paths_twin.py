@@ -18,9 +18,9 @@ import torch
 from bench.common import bench_camera
 from bench.train_step import make_gaussians, plain_render, run
 from core.config import config_from_dict
-from core.raster import resolve_backend
-from core.synthetic import make_sphere_scene
-from core.trainer import Trainer
+from core.render.raster import resolve_backend
+from core.scene.synthetic import make_sphere_scene
+from core.training.trainer import Trainer
 from tests.gsplat_twin import twin_as_cuda  # noqa: F401  (fixture)
 
 pytestmark = pytest.mark.usefixtures("twin_as_cuda")

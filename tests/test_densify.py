@@ -11,10 +11,11 @@ from scipy.spatial.transform import Rotation
 from torch import nn
 
 from core.config import Densification, TrainConfig
-from core.densify import DensifyStrategy
-from core.gaussians import PARAM_SHAPES, Gaussians, normalize_quats, quat_to_rotmat, scalar_logit
-from core.optim import make_optimizers
-from core.raster import RasterResult, rasterize
+from core.render.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
+from core.render.raster import RasterResult, rasterize
+from core.render.rotations import normalize_quats, quat_to_rotmat
+from core.training.densify import DensifyStrategy
+from core.training.optim import make_optimizers
 from tests.helpers import identity_camera
 
 W = H = 100

@@ -13,16 +13,12 @@ import torch
 import core.devices as devices
 from core.cli import main
 from core.config import ConfigError, config_from_dict
-from core.devices import (
-    DeviceUnavailableError,
-    device_problem,
-    reopen_placement,
-    require_device,
-)
+from core.devices import DeviceUnavailableError, device_problem, require_device
 from core.errors import BackendUnavailableError, GlintError
-from core.raster import resolve_backend
-from core.run import train_scene
-from core.synthetic import make_sphere_scene, write_synthetic_scene
+from core.model.placement import Placement, reopen_placement
+from core.render.raster import resolve_backend
+from core.scene.synthetic import make_sphere_scene, write_synthetic_scene
+from core.training.run import train_scene
 
 CPU_ONLY = torch.version.cuda is None and torch.version.hip is None
 AUTO = resolve_backend("auto", "cpu")
@@ -92,7 +88,7 @@ def test_reopening_a_gpu_run_on_this_machine():
     ]
     # what works here is kept as recorded, without notes
     for backend in ("auto", "reference", AUTO):
-        assert reopen_placement("cpu", backend) == devices.Placement("cpu", backend, [])
+        assert reopen_placement("cpu", backend) == Placement("cpu", backend, [])
     # the user's explicit choice must work here, or fail loudly
     assert reopen_placement("cuda", "cuda", backend_override="reference").backend == "reference"
     with pytest.raises(DeviceUnavailableError, match="option '--device'"):

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.autograd import gradcheck
 
-from core.envmap import (
+from core.render.envmap import (
     FACE_NAMES,
     EnvMap,
     direction_to_face_uv,

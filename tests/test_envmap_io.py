@@ -9,8 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from core.envmap import EnvMap, texel_directions
-from core.envmap_io import (
+from core.errors import SceneError
+from core.render.envmap import EnvMap, texel_directions
+from core.render.envmap_io import (
     CROSS_BLOCKS,
     LatLong,
     cross_to_cube,
@@ -23,8 +24,7 @@ from core.envmap_io import (
     save_cube_cross,
     save_envmap,
 )
-from core.errors import SceneError
-from core.imageio import linear_to_srgb, read_image, read_image_array, write_image
+from core.scene.imageio import linear_to_srgb, read_image, read_image_array, write_image
 
 F64 = torch.float64
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

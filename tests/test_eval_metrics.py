@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from core.metrics import (
+from core.evaluation.metrics import (
     chamfer_distance,
     lpips_distance,
     lpips_unavailable_reason,
@@ -158,7 +158,7 @@ def test_chamfer_protocol_matches_the_data_readme_floor(shared_scene) -> None:
     """Sampling the true teapot mesh with 200k points scores CD×100 ≈ 0.25 (README)."""
     import trimesh
 
-    from core.bench import load_gt_points, mesh_chamfer
+    from core.evaluation.geometry import load_gt_points, mesh_chamfer
 
     root = shared_scene("teapot_gold")
     mesh = trimesh.load(root / "gt_mesh.ply", process=False, force="mesh")

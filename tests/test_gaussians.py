@@ -9,10 +9,11 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from core.cameras import Camera, Intrinsics
-from core.gaussians import PARAM_SHAPES, SCALE_RANGE, Gaussians, normalize_quats
-from core.scene import Scene
-from core.sh import C0, C1, sh_to_rgb
+from core.render.gaussians import PARAM_SHAPES, SCALE_RANGE, Gaussians
+from core.render.rotations import normalize_quats
+from core.render.sh import C0, C1, sh_to_rgb
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.views import Scene
 
 INTR = Intrinsics(50.0, 50.0, 16.0, 16.0, 32, 32)
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.gbuffer import MIN_ALPHA, MIN_COS, planar_depth, render_gbuffer_tensors
+from core.render.gbuffer import MIN_ALPHA, MIN_COS, planar_depth, render_gbuffer_tensors
 from tests.helpers import identity_camera, rot_y, rotmat_y
 
 
@@ -112,9 +112,9 @@ def test_gbuffer_gradients_match_finite_differences():
     wts = torch.rand(10, 10, 6, generator=g, dtype=dtype)
 
     def f(means, quats, op, colors, w_r):
-        from core.raster import quats_to_rotmat
+        from core.render.rotations import normalize_quats, quat_to_rotmat
 
-        normals = quats_to_rotmat(quats)[:, :, 2]
+        normals = quat_to_rotmat(normalize_quats(quats))[:, :, 2]
         gb, _ = render_gbuffer_tensors(
             means, quats, scales, op, colors, normals, w_r, cam, backend="reference"
         )

@@ -7,8 +7,9 @@ import math
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.losses import (
+from core.evaluation.ssim import ssim, ssim_reference
+from core.scene.cameras import Camera, Intrinsics
+from core.training.losses import (
     bilinear_lookup,
     edge_weight,
     multi_view_loss,
@@ -16,8 +17,6 @@ from core.losses import (
     rgb_loss,
     scale_loss,
     single_view_loss,
-    ssim,
-    ssim_reference,
 )
 from tests.helpers import identity_camera, rotmat_y
 

@@ -6,15 +6,15 @@ import numpy as np
 import pytest
 import torch
 
-from core.mesh import (
+from core.meshing.mesh import export_mesh
+from core.meshing.tsdf import (
     DepthFrame,
-    export_mesh,
     extract_mesh,
     fuse_depth_frames,
     fusion_bounds,
     keep_largest_components,
 )
-from core.synthetic import SPHERE_RADIUS, fibonacci_cameras, render_view
+from core.scene.synthetic import SPHERE_RADIUS, fibonacci_cameras, render_synthetic_view
 
 SIZE = 32
 
@@ -25,7 +25,7 @@ def sphere_frames() -> list[DepthFrame]:
     masked the way rendered planar depths are (alpha > 0.5; empty where alpha ≈ 0)."""
     frames = []
     for cam in fibonacci_cameras(12, distance=3.0, size=SIZE):
-        r = render_view(cam, shape="sphere", kind="diffuse", samples=2)
+        r = render_synthetic_view(cam, shape="sphere", kind="diffuse", samples=2)
         valid = (r.depth > 0) & (r.alpha > 0.5)
         frames.append(DepthFrame(cam, r.depth, valid, r.alpha < 0.05, r.rgb))
     return frames

@@ -8,8 +8,8 @@ import shutil
 import pytest
 import torch
 
-from core import native_build
-from core.raster import cpu_simd, rasterize
+from core.kernels import native_build
+from core.render.raster import cpu_simd, rasterize
 from tests.test_raster_cpu import _camera, _scene
 
 GOOD = "int answer(int x) { return 2 * x + 1; }\n"
@@ -99,6 +99,23 @@ def test_switched_off_falls_back_to_numba(monkeypatch):
     with torch.no_grad():
         ref = rasterize(*scene, cam, backend="reference")
     torch.testing.assert_close(off.features, ref.features, rtol=1e-5, atol=1e-5)
+
+
+def test_service_settings_reach_the_kernel_loader(monkeypatch, tmp_path):
+    """``Settings.native*`` (also from a .env file) replace the environment's values."""
+    from api.service.settings import Settings, apply_to_core
+
+    monkeypatch.delenv("GLINT_NATIVE", raising=False)
+    monkeypatch.delenv("GLINT_NATIVE_CACHE", raising=False)
+    try:
+        apply_to_core(Settings(native=False, native_cache=tmp_path / "kc"))
+        assert cpu_simd.library() is None
+        assert "GLINT_NATIVE=0" in cpu_simd.why_unavailable()
+        assert native_build.cache_dir() == tmp_path / "kc"
+    finally:
+        native_build.configure()
+    assert native_build.cache_dir() != tmp_path / "kc"
+    assert cpu_simd.why_unavailable() is None or "GLINT_NATIVE=0" not in cpu_simd.why_unavailable()
 
 
 def test_default_cache_dir_follows_xdg(monkeypatch, tmp_path):

@@ -6,11 +6,11 @@ import json
 
 import pytest
 
-from core.cameras import Camera, Intrinsics
 from core.config import ConfigError, config_from_dict
-from core.planner import auto_envmap_resolution, find_neighbours, plan_scene
-from core.synthetic import make_scene
-from core.trainer import Trainer
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.synthetic import make_scene
+from core.training.planner import auto_envmap_resolution, find_neighbours, plan_scene
+from core.training.trainer import Trainer
 
 
 def _phase1_plan(scene, tmp_path, **overrides):

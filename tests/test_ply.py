@@ -11,10 +11,10 @@ import trimesh
 from plyfile import PlyData, PlyElement
 
 from core.errors import SceneError
-from core.gaussians import PARAM_SHAPES, Gaussians
-from core.ply import DEFAULT_IMPORT_REFL, load_ply, save_ply
+from core.outputs.ply import DEFAULT_IMPORT_REFL, load_ply, save_ply
+from core.render.gaussians import PARAM_SHAPES, Gaussians
 
-# The 3DGS layout written out by hand (not via core.ply) so a change there is caught.
+# The 3DGS layout written out by hand (not via core.outputs.ply) so a change there is caught.
 EXPECTED_NAMES = (
     ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     + [f"f_rest_{i}" for i in range(45)]

@@ -12,10 +12,10 @@ import math
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
 from core.config import config_from_dict
-from core.raster import covariances_from, project_gaussians, rasterize
-from core.schedule import phase_at
+from core.model.schedule import phase_at
+from core.render.raster import covariances_from, project_gaussians, rasterize
+from core.scene.cameras import Camera, Intrinsics
 
 F64 = torch.float64
 

@@ -11,8 +11,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.raster import (
+from core.render.raster import (
     BACKENDS,
     available_backends,
     bin_gaussians,
@@ -21,9 +20,10 @@ from core.raster import (
     rasterize,
     resolve_backend,
 )
-from core.raster.cpu_backend import CpuComposite, available
-from core.raster.projection import ALPHA_MAX, T_MIN, Projected
-from core.raster.reference import rasterize_reference
+from core.render.raster.cpu import CpuComposite, available
+from core.render.raster.projection import ALPHA_MAX, T_MIN, Projected
+from core.render.raster.reference import rasterize_reference
+from core.scene.cameras import Camera, Intrinsics
 
 F64 = torch.float64
 

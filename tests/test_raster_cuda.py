@@ -21,16 +21,16 @@ import math
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
 from core.config import ConfigError, config_from_dict
 from core.errors import BackendUnavailableError
-from core.raster import (
+from core.render.raster import (
     available_backends,
     covariances_from,
     rasterize,
     resolve_backend,
 )
-from core.raster.cuda_backend import available, camera_matrices, rasterize_gsplat
+from core.render.raster.cuda import available, camera_matrices, rasterize_gsplat
+from core.scene.cameras import Camera, Intrinsics
 from tests.gsplat_twin import gsplat_twin
 
 F64 = torch.float64
@@ -113,7 +113,7 @@ def test_absgrad_needs_the_cuda_backend():
     means, quats, scales, opac, feats = _scene(10, 0, 3)
     with pytest.raises(BackendUnavailableError, match="absgrad"):
         rasterize(means, quats, scales, opac, feats, cam, backend="reference", absgrad=True)
-    from core.trainer import check_runnable
+    from core.training.trainer import check_runnable
 
     cfg = config_from_dict({"backend": "cpu", "densify": {"absgrad": True}})
     with pytest.raises(ConfigError, match=r"densify\.absgrad"):
@@ -201,7 +201,7 @@ def test_full_covariance_goes_through_covars():
 
 
 def test_screen_grad_scatters_packed_rows():
-    from core.raster import RasterResult
+    from core.render.raster import RasterResult
 
     m2d = torch.zeros(3, 2, requires_grad=True)
     (m2d * torch.tensor([[1.0, 2.0], [3.0, 4.0], [5.0, 6.0]])).sum().backward()
@@ -273,8 +273,8 @@ def test_cuda_absgrad_is_filled():
     ],
 )
 def test_short_training_run(device, backend, tmp_path):
-    from core.run import train_scene
-    from core.synthetic import make_sphere_scene
+    from core.scene.synthetic import make_sphere_scene
+    from core.training.run import train_scene
 
     scene = make_sphere_scene("glossy", n_train=8, n_test=2, size=48, samples=2)
     cfg = config_from_dict(

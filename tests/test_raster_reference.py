@@ -7,16 +7,16 @@ import math
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
 from core.errors import BackendUnavailableError
-from core.raster import (
+from core.render.raster import (
     bin_gaussians,
     covariances_from,
     project_gaussians,
     rasterize,
     resolve_backend,
 )
-from core.raster.projection import ALPHA_MAX
+from core.render.raster.projection import ALPHA_MAX
+from core.scene.cameras import Camera, Intrinsics
 from tests.helpers import identity_camera
 
 
@@ -142,7 +142,7 @@ def test_memory_bounded_chunking_gives_same_result():
     # float64: in float32 the rounding of T can flip the 1e-4 termination test.
     means, quats, scales, op, feats = _random_scene(300, 5, torch.float64)
     r1 = rasterize(means, quats, scales, op, feats, cam, backend="reference")
-    from core.raster.reference import rasterize_reference
+    from core.render.raster.reference import rasterize_reference
 
     covs = covariances_from(quats, scales)
     proj = project_gaussians(means, covs, cam)
@@ -154,7 +154,7 @@ def test_memory_bounded_chunking_gives_same_result():
 
 @pytest.mark.parametrize(("size", "n"), [(37, 400), (64, 3000)])
 def test_compiled_binning_equals_torch_binning(size, n):
-    from core.raster.binning import bin_gaussians_torch
+    from core.render.raster.binning import bin_gaussians_torch
 
     cam = identity_camera(size)
     means, quats, scales, _, _ = _random_scene(n, 11, torch.float32)
@@ -172,8 +172,8 @@ def test_compiled_binning_sorts_ties_and_any_depths_like_torch(dtype, negative, 
     """Radix depth order (positive depths) and its general fallback: equal depths keep
     index order, Gaussians off-screen or with radius 0 are left out, as in torch; tile
     rows split over several workers give the same lists."""
-    from core.kernel_pool import set_kernel_threads
-    from core.raster.binning import bin_gaussians_torch
+    from core.kernels.pool import set_kernel_threads
+    from core.render.raster.binning import bin_gaussians_torch
 
     set_kernel_threads(threads)  # reset after each test (conftest)
 

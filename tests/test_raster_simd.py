@@ -19,11 +19,17 @@ import numpy as np
 import pytest
 import torch
 
-from core import native_build
-from core.raster import bin_gaussians, covariances_from, cpu_simd, project_gaussians, rasterize
-from core.raster.cpu_backend import _Setup, rasterize_cpu
-from core.raster.projection import T_MIN, Projected
-from core.raster.reference import rasterize_reference
+from core.kernels import native_build
+from core.render.raster import (
+    bin_gaussians,
+    covariances_from,
+    cpu_simd,
+    project_gaussians,
+    rasterize,
+)
+from core.render.raster.cpu import _Setup, rasterize_cpu
+from core.render.raster.projection import T_MIN, Projected
+from core.render.raster.reference import rasterize_reference
 from tests.test_raster_cpu import _camera, _scene
 
 F32 = torch.float32
@@ -253,7 +259,7 @@ def test_huge_opacities_follow_libm(opacity):
 
 
 def test_prebuilt_levels_give_the_same_frame(tmp_path):
-    # The variants an image ships (python -m core.native_build --prebuild), each run
+    # The variants an image ships (python -m core.kernels.native_build --prebuild), each run
     # where this CPU supports it.
     if not native_build._levels():
         pytest.skip(f"no prebuilt levels for {platform.machine()}")
@@ -334,7 +340,7 @@ def test_training_backward_is_deterministic_across_threads():
     cam = _camera(50, 38)
     scene = _scene(300, 12, 4, F32, flat=True)
     proj, op, feats, bins = _projected(scene, cam)
-    from core.kernel_pool import set_kernel_threads
+    from core.kernels.pool import set_kernel_threads
 
     set_kernel_threads(1)
     out1, g1 = _train(proj, op, feats, bins, 50, 38, simd=True)

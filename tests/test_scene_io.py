@@ -16,16 +16,16 @@ import pytest
 import torch
 from plyfile import PlyData
 
-from core.cameras import Camera, Intrinsics
 from core.errors import SceneError
-from core.imageio import linear_to_srgb, write_image
-from core.scene import Scene, View
-from core.scene_io import detect_format, load_scene
-from core.scene_io.colmap import qvec_to_rotmat, rotmat_to_qvec
-from core.scene_io.common import cap_views, opengl_c2w_to_w2c, split_every, validate_rigid
-from core.scene_io.llff import llff_to_w2c
-from core.scene_io.writers import flat_name, write_scene
-from core.synthetic import make_scene
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.formats import detect_format, load_scene
+from core.scene.formats.colmap import qvec_to_rotmat, rotmat_to_qvec
+from core.scene.formats.common import cap_views, opengl_c2w_to_w2c, split_every, validate_rigid
+from core.scene.formats.llff import llff_to_w2c
+from core.scene.formats.writers import flat_name, write_scene
+from core.scene.imageio import linear_to_srgb, write_image
+from core.scene.synthetic import make_scene
+from core.scene.views import Scene, View
 
 # -- helpers -------------------------------------------------------------------------
 

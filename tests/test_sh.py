@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from core import sh
-from core.sh import (
+from core.render import sh
+from core.render.sh import (
     C0,
     C1,
     C2,

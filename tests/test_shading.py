@@ -9,10 +9,10 @@ from pathlib import Path
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.envmap import EnvMap, texel_directions
-from core.gbuffer import GBuffer
-from core.shading import ShadeResult, deferred_shade, reflect, safe_normalize
+from core.render.envmap import EnvMap, texel_directions
+from core.render.gbuffer import GBuffer
+from core.render.shading import ShadeResult, deferred_shade, reflect, safe_normalize
+from core.scene.cameras import Camera, Intrinsics
 
 F64 = torch.float64
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -247,8 +247,8 @@ def test_dev_sphere_mirror_views_are_reproduced_by_deferred_shading():
     """Render the analytic sphere with the scene's own env map and compare with the
     path-traced test images (silver, 1024 spp, clipped at 1). Conventions that are off
     (env map rotated or mirrored, camera axes) score 12-16 dB here; the right ones ~25-29."""
-    from core.envmap_io import init_envmap_from_file
-    from core.imageio import read_image
+    from core.render.envmap_io import init_envmap_from_file
+    from core.scene.imageio import read_image
 
     root = DATA / "sphere_mirror"
     meta = json.loads((root / "meta.json").read_text())

@@ -9,16 +9,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.scene_io import load_scene
-from core.synthetic import (
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.formats import load_scene
+from core.scene.synthetic import (
     BOX_HALF,
     SPHERE_RADIUS,
     default_env,
     fibonacci_cameras,
     make_scene,
     make_sphere_scene,
-    render_view,
+    render_synthetic_view,
     shade,
     surface_points,
     write_synthetic_scene,
@@ -33,7 +33,7 @@ def _front_camera(size: int = 64, distance: float = 3.0) -> Camera:
 def test_sphere_alpha_is_exact_coverage() -> None:
     """Sum of alpha = area of the silhouette disk f·tan(asin(r/d)) (radius in pixels)."""
     cam = _front_camera(64)
-    r = render_view(cam, kind="diffuse", samples=8)
+    r = render_synthetic_view(cam, kind="diffuse", samples=8)
     disk = math.pi * (cam.intrinsics.fx * math.tan(math.asin(SPHERE_RADIUS / 3.0))) ** 2
     assert float(r.alpha.sum()) == pytest.approx(disk, rel=5e-3)
     assert float(r.alpha.min()) == 0.0 and float(r.alpha.max()) == 1.0
@@ -43,7 +43,7 @@ def test_sphere_alpha_is_exact_coverage() -> None:
 
 def test_depth_and_normals_describe_the_sphere() -> None:
     cam = _front_camera(48)
-    r = render_view(cam, kind="mirror", samples=1)
+    r = render_synthetic_view(cam, kind="mirror", samples=1)
     hit = r.depth > 0
     assert (hit == (r.alpha > 0.5)).float().mean() > 0.97
     pts = cam.backproject(cam.pixel_centers(torch.float64)[hit], r.depth[hit].double())
@@ -71,7 +71,7 @@ def test_shading_model() -> None:
 
 def test_mirror_centre_reflects_towards_camera() -> None:
     cam = _front_camera(33)
-    r = render_view(cam, kind="mirror", samples=1)
+    r = render_synthetic_view(cam, kind="mirror", samples=1)
     expect = default_env(torch.tensor([[1.0, 0.0, 0.0]]))[0].clamp(0, 1)
     torch.testing.assert_close(r.rgb[16, 16], expect, atol=0.02, rtol=0)
 
@@ -140,13 +140,13 @@ def test_kinds_differ_as_planned() -> None:
 
 def test_render_is_fast() -> None:
     cam = _front_camera(128)
-    render_view(cam, kind="glossy", samples=4)  # warm-up
+    render_synthetic_view(cam, kind="glossy", samples=4)  # warm-up
     # CPU seconds on one thread: wall time on a shared 2-core box measures the neighbours
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
         t = time.process_time()
-        render_view(cam, kind="glossy", samples=4)
+        render_synthetic_view(cam, kind="glossy", samples=4)
         assert time.process_time() - t < 1.0
     finally:
         torch.set_num_threads(threads)

@@ -5,8 +5,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core import kernel_pool
-from core.threads import ENV_VAR, configure_cpu_threads, kernel_threads_from_env, usable_cpus
+from core.kernels import pool as kernel_pool
+from core.kernels.threads import (
+    ENV_VAR,
+    configure_cpu_threads,
+    kernel_threads_from_env,
+    usable_cpus,
+)
 
 
 @pytest.fixture
@@ -53,7 +58,7 @@ def test_cli_reports_a_bad_env_value(monkeypatch, capsys):
 def test_results_do_not_depend_on_the_kernel_thread_count(restore_threads):
     """Tiles are assigned to workers statically; gradients are summed per worker slot."""
     from bench.common import bench_camera, random_gaussians
-    from core.raster import rasterize
+    from core.render.raster import rasterize
 
     cam = bench_camera(48)
     base = random_gaussians(1500, channels=4)

@@ -7,12 +7,12 @@ import json
 import pytest
 import torch
 
-from core.checkpoint import load_checkpoint
 from core.config import config_from_dict
-from core.report import read_metrics
-from core.run import train_scene
-from core.synthetic import make_scene
-from core.trainer import Trainer
+from core.model.checkpoint import load_checkpoint
+from core.outputs.report import read_metrics
+from core.scene.synthetic import make_scene
+from core.training.run import train_scene
+from core.training.trainer import Trainer
 
 TINY = {
     "iterations": 40,
@@ -126,7 +126,7 @@ def test_cancel_keeps_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path):
 
 
 def test_nan_guard_skips_bad_steps(tiny_scene, tmp_path, monkeypatch):
-    import core.trainer as tr
+    import core.training.trainer as tr
 
     cfg = config_from_dict({**TINY, "iterations": 12})
     real = tr.rgb_loss
@@ -169,7 +169,7 @@ def test_a_step_reads_back_from_the_device_once(tiny_scene, tmp_path):
                     frame = frame.f_back
                 code = frame.f_code if frame is not None else None
                 # the view order is drawn from a CPU generator: no device involved
-                if code and code.co_filename.endswith("core/trainer.py"):
+                if code and code.co_filename.endswith("core/training/trainer.py"):
                     StepReads.count += code.co_name != "_next_view"
             return func(*args, **(kwargs or {}))
 

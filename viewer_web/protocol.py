@@ -18,7 +18,7 @@ from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from core.channels import CHANNELS
+from core.model.channels import CHANNELS
 
 PROTOCOL_VERSION = 1
 MAX_SIDE = 4096

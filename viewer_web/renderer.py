@@ -22,20 +22,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from core.cameras import Camera, Intrinsics
-from core.checkpoint import load_checkpoint
-from core.config import TrainConfig, saved_config
-from core.envmap import EnvMap
-from core.envmap_io import cube_to_equirect
-from core.gaussians import Gaussians
-from core.gbuffer import geometry_depth, render_gbuffer_tensors
-from core.imageio import linear_to_srgb
-from core.outputs import CHANNELS, colormap
-from core.planner import ScenePlan
-from core.raster import fallback_backend
-from core.schedule import Phase, phase_at
-from core.shading import deferred_shade
-from core.trainer import CHECKPOINT_NAME, eval_background
+from core.model.channels import CHANNELS
+from core.model.frame import to_display
+from core.model.trained import CHECKPOINT_NAME, TrainedModel
+from core.render.envmap_io import cube_to_equirect
+from core.render.raster import fallback_backend
+from core.scene.cameras import Camera, Intrinsics
 
 log = logging.getLogger("glint.viewer")
 
@@ -49,80 +41,33 @@ def default_device() -> torch.device:
 
 @dataclass
 class LoadedModel:
-    """One checkpoint, ready to render: what a frame needs and nothing to train with."""
+    """One checkpoint as the viewer holds it: the frozen model, the file's mtime (to
+    notice a newer checkpoint) and where a client first looks."""
 
-    gaussians: Gaussians
-    envmap: EnvMap | None
-    cfg: TrainConfig
-    phase: Phase
-    iteration: int
+    model: TrainedModel
     mtime: float
     center: list[float]
     radius: float
-    device: torch.device
-    static: dict[str, torch.Tensor]
-    backend: str = "auto"
-
-    @staticmethod
-    def precompute(g: Gaussians, sh_degree: int) -> dict[str, torch.Tensor]:
-        """View-independent per-Gaussian inputs, computed once per checkpoint.
-
-        Covariances and normals each cost a quaternion → matrix pass over every
-        Gaussian, about a third of a CPU frame on a 100k model; colours too when the
-        run has not reached view-dependent SH yet (degree 0).
-        """
-        static = {
-            "means": g.params["means"].detach(),
-            "covariances": g.covariances.detach(),
-            "opacities": g.opacities.detach(),
-            "normals": g.normals().detach(),
-            "w_r": g.w_r.detach(),
-        }
-        if sh_degree == 0:
-            dummy = Camera.look_at([0, 0, 1], [0, 0, 0], [0, 1, 0], Intrinsics(1, 1, 0, 0, 1, 1))
-            static["colors"] = g.colors(dummy, 0).detach()
-        return static
 
     @property
-    def n_gaussians(self) -> int:
-        return self.gaussians.num
+    def iteration(self) -> int:
+        return self.model.iteration
+
+    @property
+    def device(self) -> torch.device:
+        return self.model.device
+
+    @property
+    def backend(self) -> str:
+        return self.model.backend
+
+    @property
+    def cfg(self):
+        return self.model.config
 
     def summary(self) -> dict[str, Any]:
         """The ``model`` message: what the client shows and frames its first view with."""
-        return {
-            "iteration": self.iteration,
-            "n_gaussians": self.n_gaussians,
-            "phase": self.phase.name,
-            "envmap": self.envmap is not None,
-            "center": self.center,
-            "radius": self.radius,
-            "device": str(self.device),
-            "backend": self.backend,
-        }
-
-
-def _phase_of(
-    extra: dict[str, Any], cfg: TrainConfig, gaussians: Gaussians, has_env: bool
-) -> Phase:
-    """The phase the run was in at its last iteration (as ``Trainer.current_phase``).
-
-    Checkpoints written by tools other than the trainer may carry no plan: then the
-    env map is used if the file holds one, and the model's own SH degree.
-    """
-    iteration = int(extra.get("iteration", cfg.iterations))
-    plan_data = extra.get("plan")
-    if isinstance(plan_data, dict):
-        plan = ScenePlan.from_dict(plan_data)
-        env, mv, sh = (
-            bool(plan.envmap.value),
-            bool(plan.multi_view.value),
-            int(plan.sh_degree.value),
-        )
-    else:
-        env, mv, sh = has_env, False, gaussians.sh_degree
-    return phase_at(
-        cfg, max(iteration - 1, 0), envmap_planned=env, multi_view_planned=mv, max_sh_degree=sh
-    )
+        return {**self.model.summary(), "center": self.center, "radius": self.radius}
 
 
 def frame_backend(trained_with: str, device: torch.device) -> str:
@@ -139,40 +84,16 @@ def frame_backend(trained_with: str, device: torch.device) -> str:
 
 
 def load_model(path: Path, device: torch.device) -> LoadedModel:
-    """Read a checkpoint for viewing (weights only; raises CheckpointError if unreadable)."""
+    """Read a checkpoint for viewing (weights only; raises CheckpointError if unreadable).
+
+    A backend this device lacks gives way to one it has (see ``frame_backend``)."""
     mtime = path.stat().st_mtime
-    ck = load_checkpoint(path, device)
-    extra = ck.extra
-    cfg_data = extra.get("config")
-    cfg = saved_config(dict(cfg_data) if isinstance(cfg_data, dict) else {}, str(path))
-    envmap = None
-    env_state = extra.get("envmap")
-    if isinstance(env_state, dict) and "raw" in env_state:
-        raw = env_state["raw"]
-        envmap = EnvMap(raw.shape[1], raw.shape[-1]).to(device)
-        envmap.load_state_dict(env_state)
-        envmap.requires_grad_(False)
-    g = ck.gaussians
-    for p in g.params.values():
-        p.requires_grad_(False)
-    means = g.params["means"].detach().float()
-    center = means.median(dim=0).values
-    dist = (means - center).norm(dim=-1)
-    radius = float(torch.quantile(dist[:100_000].cpu(), 0.9)) if dist.numel() else 1.0
-    phase = _phase_of(extra, cfg, g, envmap is not None)
-    return LoadedModel(
-        gaussians=g,
-        envmap=envmap,
-        cfg=cfg,
-        phase=phase,
-        iteration=int(extra.get("iteration", 0)),
-        mtime=mtime,
-        center=[float(v) for v in center.cpu()],
-        radius=max(radius, 1e-6),
-        device=device,
-        static=LoadedModel.precompute(g, phase.sh_degree),
-        backend=frame_backend(cfg.backend, device),
-    )
+    notes: list[str] = []
+    model = TrainedModel.open(path, device=str(device), notes=notes).freeze()
+    for note in notes:
+        log.info("viewer: %s", note)
+    center, radius = model.framing()
+    return LoadedModel(model=model, mtime=mtime, center=center, radius=radius)
 
 
 class ModelCache:
@@ -210,24 +131,19 @@ class ModelCache:
 
     def envmap_png(self, height: int = 256) -> bytes | None:
         """The env map as an 8-bit sRGB lat-long PNG (2H × H), cached per checkpoint."""
-        model = self.get()
-        if model is None or model.envmap is None:
+        loaded = self.get()
+        if loaded is None or loaded.model.envmap is None:
             return None
         with self._lock:
-            if self._envmap_png is not None and self._envmap_png[0] == model.mtime:
+            if self._envmap_png is not None and self._envmap_png[0] == loaded.mtime:
                 return self._envmap_png[1]
         with torch.no_grad():
-            texels = model.envmap.texels().detach().float().cpu()
+            texels = loaded.model.envmap.texels().detach().float().cpu()
             img = cube_to_equirect(texels, height)
-        data = _to_png(_to_uint8(img))
+        data = _to_png(to_display(img))
         with self._lock:
-            self._envmap_png = (model.mtime, data)
+            self._envmap_png = (loaded.mtime, data)
         return data
-
-
-def _to_uint8(linear: torch.Tensor) -> np.ndarray:
-    srgb = linear_to_srgb(linear.detach().float().clamp(0, 1))
-    return (srgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu().numpy()
 
 
 def _to_png(rgb: np.ndarray) -> bytes:
@@ -244,7 +160,7 @@ def encode_jpeg(rgb: np.ndarray, quality: int) -> bytes:
 
 
 def make_camera(spec: Any, scale: float) -> Camera:
-    """The :class:`core.cameras.Camera` of a validated camera message at ``scale``.
+    """The :class:`core.scene.cameras.Camera` of a validated camera message at ``scale``.
 
     ``spec`` is a :class:`viewer_web.protocol.CameraMsg`; intrinsics given by the client
     are for its full width/height and are scaled with the image.
@@ -264,54 +180,11 @@ def make_camera(spec: Any, scale: float) -> Camera:
 
 
 @torch.no_grad()
-def render_channel(model: LoadedModel, camera: Camera, channel: str) -> np.ndarray:
+def render_channel(loaded: LoadedModel, camera: Camera, channel: str) -> np.ndarray:
     """One channel of one view as display-ready (H, W, 3) uint8 sRGB.
 
-    Only what the channel needs is computed: shading (env map lookups) for ``final``
-    and ``specular`` only; the depth colour map (turbo) only for ``depth``.
-    """
-    device = model.device
-    bg = eval_background(model.cfg, device)
-    phase = model.phase
-    st = model.static
-    colors = st.get("colors")
-    if colors is None:
-        colors = model.gaussians.colors(camera, phase.sh_degree)
-    gb, _ = render_gbuffer_tensors(
-        st["means"],
-        None,
-        None,
-        st["opacities"],
-        colors,
-        st["normals"],
-        st["w_r"],
-        camera,
-        covariances=st["covariances"],
-        backend=model.backend,
-        antialiased=phase.antialiased,
-    )
-    if channel in ("final", "specular"):
-        shade = deferred_shade(
-            gb, model.envmap, bg, enabled=phase.envmap and model.envmap is not None
-        )
-        img = shade.final if channel == "final" else shade.specular
-    elif channel == "base":
-        img = gb.base + (1 - gb.alpha[..., None]) * bg
-    elif channel == "normal":
-        n_world = gb.normal @ camera.R.to(gb.normal)
-        n_world = n_world / n_world.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-        rgb = (n_world * 0.5 + 0.5) * gb.alpha[..., None]  # already display-encoded
-        return (rgb * 255.0 + 0.5).clamp(0, 255).to(torch.uint8).cpu().numpy()
-    elif channel == "depth":
-        depth, valid = geometry_depth(gb, phase.planar_depth)
-        img = colormap(depth.cpu(), valid.cpu())
-    elif channel == "w_r":
-        img = gb.w_r[..., None].expand(-1, -1, 3)
-    elif channel == "alpha":
-        img = gb.alpha[..., None].expand(-1, -1, 3)
-    else:
-        raise ValueError(f"unknown channel {channel!r}")
-    return _to_uint8(img)
+    Only what the channel needs is computed (see ``TrainedModel.render``)."""
+    return to_display(loaded.model.render(camera, (channel,)).image(channel))
 
 
 def timed_frame(

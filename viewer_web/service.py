@@ -80,7 +80,7 @@ def training_cameras(scene_dir: Path) -> list[dict[str, Any]]:
     """
     import math
 
-    from core.scene_io import load_scene
+    from core.scene.formats import load_scene
 
     scene = load_scene(scene_dir, downscale=8.0)
     out = []

@@ -3,8 +3,9 @@
 Why not the API key itself: the page would have to keep it in memory, in URLs of
 WebSocket and image requests, and in server logs. A viewer token grants only "view
 this one job" for a few minutes, so a leaked one is worth little. Tokens are
-stateless (nothing to store or clean up); replicas that share ``GLINT_VIEWER_SECRET``
-accept each other's tokens, otherwise each process signs with its own random key.
+stateless (nothing to store or clean up); replicas given the same secret (the API's
+``GLINT_VIEWER_SECRET`` setting) accept each other's tokens, otherwise each process
+signs with its own random key.
 """
 
 from __future__ import annotations
@@ -13,7 +14,6 @@ import base64
 import hashlib
 import hmac
 import json
-import os
 import secrets
 import time
 from dataclasses import dataclass
@@ -23,9 +23,8 @@ DEFAULT_TTL_S = 15 * 60
 
 
 def default_secret() -> bytes:
-    """``GLINT_VIEWER_SECRET`` when set (shared by replicas), else a per-process key."""
-    env = os.environ.get("GLINT_VIEWER_SECRET")
-    return env.encode("utf-8") if env else secrets.token_bytes(32)
+    """A per-process key, for services not given a shared secret."""
+    return secrets.token_bytes(32)
 
 
 @dataclass(frozen=True)

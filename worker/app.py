@@ -2,7 +2,7 @@
 
 Importing this module configures the app from ``GLINT_*`` and registers the task
 and the worker signals; only worker processes import it. torch is not imported here:
-the trainer is imported by :func:`api.jobs_runner.run_job` inside the task, so even
+the trainer is imported by :func:`api.service.runner.run_job` inside the task, so even
 a prefork pool would fork before CUDA exists (``glint worker`` uses the solo pool).
 """
 
@@ -13,13 +13,14 @@ from typing import Any
 
 from celery import signals
 
-from worker.broker import TASK_TRAIN, make_app
+from api.service.broker import TASK_TRAIN, make_app
+from api.service.settings import Settings, apply_to_core
 from worker.runtime import WorkerRuntime
-from worker.settings import WorkerSettings
 
 log = logging.getLogger("glint.worker")
 
-settings = WorkerSettings()
+settings = Settings()
+apply_to_core(settings)
 app = make_app(settings)
 runtime = WorkerRuntime(app, settings)
 

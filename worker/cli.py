@@ -19,9 +19,10 @@ def node_name(device: str) -> str:
 
 
 def _cmd_worker(args: argparse.Namespace) -> int:
+    from api.service.settings import Settings
     from core.devices import DeviceUnavailableError, require_device
 
-    device = args.device or os.environ.get("GLINT_WORKER_DEVICE") or "cpu"
+    device = args.device or Settings().worker_device
     try:  # a worker without its GPU would claim jobs only to fail every one of them
         require_device(device, "--device")
     except DeviceUnavailableError as exc:
@@ -36,8 +37,8 @@ def _cmd_worker(args: argparse.Namespace) -> int:
     ):
         if getattr(args, opt, None):
             os.environ[var] = str(getattr(args, opt))
+    from api.service.broker import QUEUE
     from worker.app import app, settings
-    from worker.broker import QUEUE
 
     if not settings.redis_url:
         print(

@@ -24,12 +24,13 @@ import time
 from datetime import UTC, datetime, timedelta
 
 from celery import Celery
-from sqlalchemy import delete, or_, select, update
+from sqlalchemy import delete, update
 
-from api.db import Database, database_for
-from api.models import Job, JobState, Worker
-from worker.broker import QUEUE, TASK_TRAIN, pending_job_ids
-from worker.settings import WorkerSettings
+from api.service.broker import QUEUE, TASK_TRAIN
+from api.service.db import database_for
+from api.service.models import JobState, Worker
+from api.service.recovery import lost_queued, requeue_stale_running
+from api.service.settings import Settings
 
 log = logging.getLogger("glint.worker")
 
@@ -40,69 +41,10 @@ def _now() -> datetime:
     return datetime.now(UTC)
 
 
-def requeue_stale_running(database: Database, stale_after_s: float) -> list[str]:
-    """``running`` jobs without heartbeat for ``stale_after_s`` back to ``queued``; their ids.
-
-    Clearing the lease fences the old runner off, should it be alive after all (a
-    stall, a partition): its next write matches no row and it stops.
-    """
-    now = _now()
-    cutoff = now - timedelta(seconds=stale_after_s)
-    stale = (Job.state == JobState.RUNNING) & or_(
-        Job.heartbeat_at < cutoff, Job.heartbeat_at.is_(None)
-    )
-    taken = []
-    with database.write() as s:
-        for job_id in s.scalars(select(Job.id).where(stale)).all():
-            res = s.execute(
-                update(Job)
-                .where(Job.id == job_id, stale)
-                .values(state=JobState.QUEUED, lease=None, updated_at=now, version=Job.version + 1)
-                .execution_options(synchronize_session=False)
-            )
-            if res.rowcount == 1:
-                taken.append(job_id)
-    return taken
-
-
-def lost_queued(database: Database, settings: WorkerSettings) -> list[str]:
-    """``queued`` jobs older than the grace with no message in the broker; touched, so
-    other reapers skip them for another grace period."""
-    now = _now()
-    cutoff = now - timedelta(seconds=settings.queued_grace_s)
-    with database.read() as s:
-        rows = s.execute(
-            select(Job.id, Job.updated_at).where(
-                Job.state == JobState.QUEUED, Job.updated_at < cutoff
-            )
-        ).all()
-    if not rows:
-        return []
-    try:
-        waiting = pending_job_ids(settings, [r.id for r in rows])
-    except Exception:  # cannot look: re-send all (duplicates are harmless)
-        log.warning("reaper: cannot inspect the broker queue", exc_info=True)
-        waiting = set()
-    lost = []
-    with database.write() as s:
-        for r in rows:
-            if r.id in waiting:
-                continue
-            res = s.execute(
-                update(Job)
-                .where(Job.id == r.id, Job.state == JobState.QUEUED, Job.updated_at == r.updated_at)
-                .values(updated_at=now)
-                .execution_options(synchronize_session=False)
-            )
-            if res.rowcount == 1:
-                lost.append(r.id)
-    return lost
-
-
 class WorkerRuntime:
     """This process's worker identity, its current job, and its housekeeping thread."""
 
-    def __init__(self, app: Celery, settings: WorkerSettings, name: str | None = None) -> None:
+    def __init__(self, app: Celery, settings: Settings, name: str | None = None) -> None:
         self.app = app
         self.settings = settings
         self.device = settings.worker_device
@@ -118,7 +60,7 @@ class WorkerRuntime:
     # -- tasks ------------------------------------------------------------------
     def run(self, job_id: str) -> str | None:
         """Run one job (or do nothing if it is not claimable); its final state."""
-        from api.jobs_runner import run_job
+        from api.service.runner import run_job
 
         self.current_job = job_id
         self.beat()
@@ -150,7 +92,7 @@ class WorkerRuntime:
         if name:
             self.name = name
         if self.settings.auto_migrate:
-            from api.migrate import upgrade
+            from api.service.migrate import upgrade
 
             try:
                 upgrade(self.database.engine)

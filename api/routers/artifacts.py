@@ -14,12 +14,12 @@ from fastapi.responses import Response
 from sqlalchemy import select
 
 from api.deps import PrincipalDep, SessionDep, StoreDep
-from api.models import Artifact
 from api.problems import ApiError, not_found, responses
 from api.ranges import file_response
 from api.routers.jobs import owned_job
 from api.schemas import ArtifactOut
-from api.store import job_run_key
+from api.service.models import Artifact
+from api.service.store import job_run_key
 
 router = APIRouter(prefix="/jobs/{job_id}/artifacts", tags=["artifacts"])
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]

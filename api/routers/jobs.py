@@ -27,7 +27,6 @@ from sqlalchemy import func, select
 from sqlalchemy.orm import Session
 
 from api.auth import Principal
-from api.db import Database
 from api.deps import (
     DatabaseDep,
     JsonBody,
@@ -37,12 +36,13 @@ from api.deps import (
     SettingsDep,
     StoreDep,
 )
-from api.models import Job, JobState, SceneState, new_id
 from api.problems import ApiError, not_found, responses
-from api.queue import JobQueue
 from api.routers.scenes import owned_scene
 from api.schemas import JobCreate, JobOut, JobStateName, Page
-from api.store import job_key
+from api.service.db import Database
+from api.service.models import Job, JobState, SceneState, new_id
+from api.service.queue import JobQueue
+from api.service.store import job_key
 from api.views import job_out
 
 router = APIRouter(prefix="/jobs", tags=["jobs"])

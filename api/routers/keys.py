@@ -15,9 +15,9 @@ from sqlalchemy import select, text
 
 from api import auth
 from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep
-from api.models import ApiKey
 from api.problems import ApiError, not_found, responses
 from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me
+from api.service.models import ApiKey
 
 router = APIRouter(tags=["keys"])
 

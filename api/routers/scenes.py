@@ -20,13 +20,13 @@ from sqlalchemy.orm import Session
 
 from api.archives import ARCHIVE_TYPES, ArchiveLimits, extract_archive
 from api.auth import Principal
-from api.db import Database
 from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep, StoreDep
-from api.models import Job, Scene, SceneFile, SceneState, new_id
 from api.problems import ApiError, not_found, responses
 from api.schemas import Page, SceneCreate, SceneFileOut, SceneOut, UploadResult
-from api.settings import Settings
-from api.store import ArtifactStore, StoreError, scene_files_key, scene_key
+from api.service.db import Database
+from api.service.models import Job, Scene, SceneFile, SceneState, new_id
+from api.service.settings import Settings
+from api.service.store import ArtifactStore, StoreError, scene_files_key, scene_key
 from api.uploads import Limits, StagedSet, receive_body, receive_multipart, too_large
 from api.validation import validate_scene
 from api.views import scene_out, scene_out_one, scene_totals

@@ -8,7 +8,6 @@ requests, so the API key never travels in a URL. The rest of the viewer lives in
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -19,10 +18,10 @@ from pydantic import BaseModel, Field
 from sqlalchemy import select
 
 from api.deps import PrincipalDep, SessionDep
-from api.models import Job
 from api.problems import responses
 from api.routers.jobs import AUTH, JobId, owned_job
-from api.store import job_run_key, scene_files_key
+from api.service.models import Job
+from api.service.store import job_run_key, scene_files_key
 from api.views import job_out
 from viewer_web import JobView, ViewerService
 
@@ -79,8 +78,11 @@ def make_lookup(app: FastAPI) -> Callable[[str, str], JobView | None]:
 
 
 def make_service(app: FastAPI) -> ViewerService:
-    """The app's viewer service; ``GLINT_VIEWER_MAX`` bounds concurrent viewers (4)."""
-    return ViewerService(make_lookup(app), max_viewers=int(os.environ.get("GLINT_VIEWER_MAX", "4")))
+    """The app's viewer service: ``Settings.viewer_max`` bounds concurrent viewers;
+    ``Settings.viewer_secret`` signs their tokens (shared by replicas when set)."""
+    settings = app.state.settings
+    secret = settings.viewer_secret.encode("utf-8") if settings.viewer_secret else None
+    return ViewerService(make_lookup(app), secret=secret, max_viewers=settings.viewer_max)
 
 
 @router.post(

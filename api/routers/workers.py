@@ -13,9 +13,9 @@ from fastapi import APIRouter
 from sqlalchemy import select
 
 from api.deps import PrincipalDep, SessionDep
-from api.models import Job, Worker
 from api.problems import responses
 from api.schemas import WorkerOut
+from api.service.models import Job, Worker
 
 router = APIRouter(prefix="/workers", tags=["workers"])
 

@@ -17,7 +17,7 @@ PG_URL = os.environ.get("GLINT_TEST_PG", "postgresql://postgres@127.0.0.1:5432/t
 @pytest.fixture(scope="session")
 def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 24x24 glossy sphere, 6 train + 2 test views, Blender format."""
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
 
     return write_synthetic_scene(
         tmp_path_factory.mktemp("scene"), "sphere", "glossy", n_train=6, n_test=2, size=24

@@ -14,10 +14,10 @@ import httpx
 import uvicorn
 
 from api.auth import create_key
-from api.db import Database
-from api.jobs_runner import run_job
 from api.main import create_app
-from api.settings import Settings
+from api.service.db import Database
+from api.service.runner import run_job
+from api.service.settings import Settings
 
 TINY_CONFIG: dict[str, Any] = {
     "iterations": 20,

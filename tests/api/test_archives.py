@@ -10,7 +10,7 @@ import pytest
 from api.archives import ArchiveLimits, extract_archive
 from api.paths import UnsafePathError, clean_relpath
 from api.problems import ApiError
-from api.store import LocalStore
+from api.service.store import LocalStore
 from tests.api.archives import make_tar, make_zip, tar_with, zip_bomb, zip_with_symlink
 
 LIMITS = ArchiveLimits(

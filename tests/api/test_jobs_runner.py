@@ -10,11 +10,11 @@ from pathlib import Path
 import pytest
 from sqlalchemy import select
 
-from api.db import Database
-from api.jobs_runner import _JobReporter, claim, json_safe, placed_config, run_job
-from api.migrate import upgrade
-from api.models import Job, JobState, Scene, SceneState, new_id
-from api.store import job_run_key, scene_files_key
+from api.service.db import Database
+from api.service.migrate import upgrade
+from api.service.models import Job, JobState, Scene, SceneState, new_id
+from api.service.runner import _JobReporter, claim, json_safe, placed_config, run_job
+from api.service.store import job_run_key, scene_files_key
 from tests.api.support import TINY_CONFIG, make_settings
 
 
@@ -174,7 +174,7 @@ def test_the_backend_follows_the_workers_device() -> None:
 
 def test_a_cuda_job_on_a_cpu_worker_trains(tmp_path: Path, caplog) -> None:  # type: ignore[no-untyped-def]
     """A job submitted for GPU workers that a CPU worker takes trains instead of failing."""
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
 
     settings = make_settings(tmp_path)
     db = Database(settings.db_url)

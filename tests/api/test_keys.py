@@ -11,8 +11,8 @@ from pathlib import Path
 import httpx
 
 from api.auth import hash_key
-from api.db import Database
-from api.models import ApiKey
+from api.service.db import Database
+from api.service.models import ApiKey
 from tests.api.support import LiveServer, free_port
 
 REPO = Path(__file__).resolve().parents[2]

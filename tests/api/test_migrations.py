@@ -10,9 +10,9 @@ from alembic.autogenerate import compare_metadata
 from alembic.migration import MigrationContext
 from sqlalchemy import inspect
 
-from api.db import Database
-from api.migrate import alembic_config, upgrade
-from api.models import Base
+from api.service.db import Database
+from api.service.migrate import alembic_config, upgrade
+from api.service.models import Base
 
 
 @pytest.fixture(params=["sqlite", "postgresql"])

@@ -7,15 +7,16 @@ import sys
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
-from api.db import Database
-from api.migrate import upgrade
-from api.models import Job, JobState, Scene, SceneState, new_id
-from api.queue import LocalQueue, make_queue, register_backend
+from api.service.db import Database
+from api.service.migrate import upgrade
+from api.service.models import Job, JobState, Scene, SceneState, new_id
+from api.service.queue import LocalQueue, make_queue, queue_kind
+from api.service.settings import Settings
 from tests.api.support import (
     TINY_CONFIG,
     LiveServer,
-    RecordingQueue,
     make_settings,
     multipart,
     wait_for,
@@ -25,13 +26,14 @@ from tests.api.support import (
 def test_backend_selection(tmp_path: Path) -> None:
     settings = make_settings(tmp_path)
     assert isinstance(make_queue(settings), LocalQueue)
-    register_backend("recording", lambda s: RecordingQueue())
-    assert isinstance(
-        make_queue(settings.model_copy(update={"queue_backend": "recording"})), RecordingQueue
-    )
-    dotted = settings.model_copy(update={"queue_backend": "tests.api.support:RecordingQueue"})
-    with pytest.raises(TypeError):  # found and called: RecordingQueue takes no settings
-        make_queue(dotted)
+    assert queue_kind(settings) == "local"
+    with_broker = settings.model_copy(update={"redis_url": "redis://127.0.0.1:1/0"})
+    assert queue_kind(with_broker) == "celery"
+    forced = with_broker.model_copy(update={"queue_backend": "local"})
+    assert queue_kind(forced) == "local" and isinstance(make_queue(forced), LocalQueue)
+    # the queue is a setting, not a module path: anything else is refused by name
+    with pytest.raises(ValidationError, match="queue_backend"):
+        Settings(queue_backend="tests.api.support:RecordingQueue")
     with pytest.raises(ValueError, match="unknown queue backend"):
         make_queue(settings.model_copy(update={"queue_backend": "carrier-pigeon"}))
 
@@ -121,7 +123,7 @@ def test_shutdown_requeues_a_running_job_and_restart_resumes_it(tmp_path: Path, 
 def test_importing_the_service_does_not_import_torch() -> None:
     """Workers fork after importing the task code; CUDA must not be initialised before."""
     code = (
-        "import sys, api.main, api.jobs_runner, api.queue, api.cli; "
+        "import sys, api.main, api.service.runner, api.service.queue, api.cli; "
         "sys.exit('torch' in sys.modules)"
     )
     repo = Path(__file__).resolve().parents[2]

@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from api.store import LocalStore, StoreError, check_key
+from api.service.store import LocalStore, StoreError, check_key
 
 
 def test_put_is_atomic_and_hashes(tmp_path: Path) -> None:

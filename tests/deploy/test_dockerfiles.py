@@ -125,11 +125,11 @@ def test_image_health_checks_match_compose() -> None:
 
 def test_api_image_ships_prebuilt_kernels() -> None:
     # The runtime has no compiler: the SIMD kernel is prebuilt in the build stage and
-    # found through GLINT_NATIVE_PREBUILT (core/native_build.py).
+    # found through GLINT_NATIVE_PREBUILT (core/kernels/native_build.py).
     ins = _instructions(DOCKER / "api.Dockerfile")
     last = max(i for i, (op, _) in enumerate(ins) if op == "FROM")
     build, runtime = ins[:last], ins[last:]
-    prebuild = "python -m core.native_build --prebuild /opt/venv/share/glint-native"
+    prebuild = "python -m core.kernels.native_build --prebuild /opt/venv/share/glint-native"
     assert any(op == "RUN" and prebuild in a for op, a in build)
     assert any(op == "RUN" and "gcc" in a for op, a in build)
     assert any(

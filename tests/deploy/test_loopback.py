@@ -175,7 +175,7 @@ def _worker_healthy(env: dict[str, str], cwd: Path) -> subprocess.CompletedProce
 
 
 def _scene_files(tmp: Path) -> list[tuple[str, tuple[str, io.BytesIO, str]]]:
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
 
     root = write_synthetic_scene(tmp, "sphere", "glossy", n_train=8, n_test=2, size=24)
     octet = "application/octet-stream"

@@ -7,9 +7,9 @@ import math
 import torch
 from torch import Tensor
 
-from core.cameras import Camera, Intrinsics
-from core.raster import available_backends
-from core.scene import Scene, View
+from core.render.raster import available_backends
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.views import Scene, View
 
 # The oracle always; the compiled CPU backend too when it is registered and can run.
 BACKENDS: list[str] = ["reference"] + (["cpu"] if "cpu" in available_backends("cpu") else [])

@@ -28,6 +28,6 @@ def _single_thread() -> Iterator[None]:
 def sphere_48():
     """Glossy sphere, 48 train views + 1 test view, 24×24: every view has a neighbour
     within 30°, so the multi-view loss runs (16 views would leave it planned off)."""
-    from core.synthetic import make_scene
+    from core.scene.synthetic import make_scene
 
     return make_scene("sphere", "glossy", n_train=48, n_test=1, size=24, seed=2, samples=2)

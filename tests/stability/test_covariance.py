@@ -21,9 +21,9 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core.gaussians import normalize_quats
-from core.raster import covariances_from, project_gaussians, rasterize
-from core.raster.projection import ALPHA_MAX
+from core.render.raster import covariances_from, project_gaussians, rasterize
+from core.render.raster.projection import ALPHA_MAX
+from core.render.rotations import normalize_quats
 from tests.stability.common import BACKENDS, all_finite, camera
 
 DTYPES = [torch.float32, torch.float64]

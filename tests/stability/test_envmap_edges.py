@@ -20,10 +20,10 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from core.cameras import Camera
-from core.envmap import sample_cube
-from core.gbuffer import GBuffer
-from core.shading import deferred_shade, reflect, world_normals
+from core.render.envmap import sample_cube
+from core.render.gbuffer import GBuffer
+from core.render.shading import deferred_shade, reflect, world_normals
+from core.scene.cameras import Camera
 from tests.stability.common import all_finite, camera
 
 # 12 edge midpoints and 8 corners of the cube, as exact ±1/0 vectors.

@@ -18,8 +18,7 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core.cameras import Camera, Intrinsics
-from core.gbuffer import (
+from core.render.gbuffer import (
     MIN_ALPHA,
     MIN_COS,
     NEAR_FRACTION,
@@ -27,8 +26,9 @@ from core.gbuffer import (
     planar_depth,
     render_gbuffer_tensors,
 )
-from core.losses import multi_view_loss
-from core.raster import rasterize
+from core.render.raster import rasterize
+from core.scene.cameras import Camera, Intrinsics
+from core.training.losses import multi_view_loss
 from tests.stability.common import BACKENDS, all_finite, camera, quat_axis_angle, rotmat
 
 DTYPES = [torch.float32, torch.float64]

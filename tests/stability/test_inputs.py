@@ -32,16 +32,16 @@ import torch
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from core.cameras import Camera
 from core.config import config_from_dict
 from core.errors import SceneError
-from core.imageio import write_image
-from core.losses import multi_view_loss, single_view_loss
-from core.scene import View
-from core.scene_io import load_scene
-from core.scene_io.writers import write_blender, write_scene
-from core.synthetic import make_scene
-from core.trainer import Trainer
+from core.scene.cameras import Camera
+from core.scene.formats import load_scene
+from core.scene.formats.writers import write_blender, write_scene
+from core.scene.imageio import write_image
+from core.scene.synthetic import make_scene
+from core.scene.views import View
+from core.training.losses import multi_view_loss, single_view_loss
+from core.training.trainer import Trainer
 from tests.stability.common import BACKENDS, TINY_TRAIN, all_finite, replace_views
 
 BAD = [float("nan"), float("inf"), float("-inf")]
@@ -213,7 +213,7 @@ def test_single_view_scene_trains_without_multi_view(sphere_48, tmp_path):
 def test_identical_cameras_have_no_neighbours(sphere_48, tmp_path):
     """Six copies of one view: no parallax, so no view is another's neighbour; the
     camera-only bounds fall back to a finite centre and radius; training runs."""
-    from core.scene import bounds_from_cameras
+    from core.scene.views import bounds_from_cameras
 
     v = sphere_48.train[0]
     scene = replace_views(
@@ -229,7 +229,7 @@ def test_colinear_cameras(sphere_48, tmp_path):
     """Five cameras on one line, all looking along it (a dolly shot at the sphere): the
     axes give no triangulation, so the bounds fall back to a finite point ahead; each
     camera's neighbour is another on the line (same axis, non-zero baseline)."""
-    from core.scene import bounds_from_cameras
+    from core.scene.views import bounds_from_cameras
 
     base = sphere_48.train[0]
     views = []

@@ -31,13 +31,13 @@ import math
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.envmap import sample_cube
-from core.gaussians import normalize_quats, quat_to_rotmat
-from core.gbuffer import MIN_COS, render_gbuffer_tensors
-from core.losses import multi_view_loss
-from core.raster import project_gaussians
-from core.synthetic import fibonacci_cameras
+from core.render.envmap import sample_cube
+from core.render.gbuffer import MIN_COS, render_gbuffer_tensors
+from core.render.raster import project_gaussians
+from core.render.rotations import normalize_quats, quat_to_rotmat
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.synthetic import fibonacci_cameras
+from core.training.losses import multi_view_loss
 from tests.stability.common import BACKENDS, camera, quat_axis_angle, rotmat
 from tests.stability.test_covariance import edge_on_covariance
 from tests.stability.test_envmap_edges import CORNERS, EDGE_POINTS, EDGES

@@ -22,21 +22,21 @@ import pytest
 import torch
 
 from core.config import config_from_dict
-from core.densify import DensifyStrategy
-from core.envmap import EnvMap
-from core.gaussians import Gaussians
-from core.gbuffer import render_gbuffer_tensors
-from core.optim import make_optimizers, means_lr
-from core.shading import deferred_shade
-from core.synthetic import fibonacci_cameras
-from core.trainer import Trainer
+from core.render.envmap import EnvMap
+from core.render.gaussians import Gaussians
+from core.render.gbuffer import render_gbuffer_tensors
+from core.render.shading import deferred_shade
+from core.scene.synthetic import fibonacci_cameras
+from core.training.densify import DensifyStrategy
+from core.training.optim import make_optimizers, means_lr
+from core.training.trainer import Trainer
 from tests.stability.common import BACKENDS, TINY_TRAIN, scaled_scene
 
 UNITS = [1e-3, 1.0, 1e3]
 
 
 def _scaled_camera(cam, k):
-    from core.cameras import Camera
+    from core.scene.cameras import Camera
 
     w2c = cam.world_to_cam.clone()
     w2c[:3, 3] *= k

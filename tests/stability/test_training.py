@@ -23,12 +23,12 @@ from typing import Any
 import pytest
 import torch
 
-import core.trainer as trainer_mod
-from core.checkpoint import load_checkpoint
+import core.training.trainer as trainer_mod
 from core.config import config_from_dict
-from core.report import read_metrics
-from core.scene import View
-from core.trainer import Trainer
+from core.model.checkpoint import load_checkpoint
+from core.outputs.report import read_metrics
+from core.scene.views import View
+from core.training.trainer import Trainer
 from tests.stability.common import BACKENDS, TINY_TRAIN, all_finite, replace_views
 
 

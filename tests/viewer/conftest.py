@@ -65,7 +65,7 @@ def viewer_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServ
 @pytest.fixture(scope="session")
 def trained_job(viewer_server: LiveServer, tmp_path_factory: pytest.TempPathFactory) -> TrainedJob:
     """A succeeded job trained on a 24×24 glossy sphere (6 train + 2 test views)."""
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
 
     scene_dir = write_synthetic_scene(
         tmp_path_factory.mktemp("viewer-scene"), "sphere", "glossy", n_train=6, n_test=2, size=24

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import torch
 
-from core.cameras import Camera, Intrinsics
-from core.checkpoint import load_checkpoint, save_checkpoint
 from core.config import config_from_dict
-from core.raster import resolve_backend
-from core.run import train_scene
-from core.synthetic import make_sphere_scene
+from core.model.checkpoint import load_checkpoint, save_checkpoint
+from core.render.raster import resolve_backend
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.synthetic import make_sphere_scene
+from core.training.run import train_scene
 from viewer_web.renderer import frame_backend, load_model, render_channel
 
 CPU = torch.device("cpu")

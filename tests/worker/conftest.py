@@ -12,7 +12,7 @@ from tests.api.support import scene_files
 @pytest.fixture(scope="session")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> list[tuple[str, bytes]]:
     """A 24x24 glossy sphere, 6 train + 2 test views (the API suite's scene)."""
-    from core.synthetic import write_synthetic_scene
+    from core.scene.synthetic import write_synthetic_scene
 
     root: Path = write_synthetic_scene(
         tmp_path_factory.mktemp("scene"), "sphere", "glossy", n_train=6, n_test=2, size=24

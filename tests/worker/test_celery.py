@@ -13,7 +13,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from api.queue import JobQueue
+from api.service.queue import JobQueue
 from tests.api.support import LiveServer, make_settings, wait_for
 from tests.worker.flow import job, ready_scene, submit, wait_iteration, wait_state
 from tests.worker.support import RedisServer, WorkerProcess, needs_redis, worker_env

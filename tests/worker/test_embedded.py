@@ -5,7 +5,7 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from api.queue import LocalQueue, make_queue
+from api.service.queue import LocalQueue, make_queue
 from tests.api.support import LiveServer, free_port, make_settings
 from tests.worker.flow import ready_scene, submit, wait_state
 

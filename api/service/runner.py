@@ -1,0 +1,421 @@
+"""The one function that runs a training job: shared by the local queue and the worker.
+
+``run_job(job_id, settings)`` is idempotent and safe under at-least-once delivery:
+
+* **Claim**: one conditional ``UPDATE`` moves the job ``queued → running`` (or takes
+  over a ``running`` job whose heartbeat is older than ``stale_after_s``: its runner
+  died) and stamps a fresh random ``lease``. Zero rows updated means someone else has
+  it, or it is finished or cancelled: return without doing anything.
+* **Fencing**: every later write says ``WHERE id = :id AND lease = :lease``. A runner
+  that lost its lease (it stalled and was taken over) writes nothing and stops at its
+  next ``should_stop`` check.
+* **Progress** goes to the database at most every ``progress_interval_s`` (≤ 2/s by
+  default) plus the last iteration; a heartbeat thread keeps ``heartbeat_at`` fresh
+  through loading and export, when no progress events come.
+* **Cancel**: ``should_stop`` reads ``cancel_requested`` (at most every
+  ``cancel_poll_s``); the trainer saves a checkpoint and the job ends ``cancelled``.
+* **Shutdown**: a runner that must stop (``stop`` event set) gets the same
+  checkpoint-and-return, but the job goes back to ``queued`` for the next runner.
+* **Resume**: the run folder lives in the store (``jobs/{id}/run``); ``train_scene``
+  always resumes from its checkpoint, so a re-queued job continues where it stopped.
+* **End**: artifacts in the run folder are registered and the state set to
+  ``succeeded``, ``cancelled`` or ``failed`` (with the error) in one transaction.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import math
+import mimetypes
+import os
+import socket
+import threading
+import time
+import uuid
+from datetime import UTC, datetime, timedelta
+from pathlib import Path
+from typing import Any
+
+from sqlalchemy import Update, delete, func, or_, select, update
+
+from api.service.db import Database, database_for
+from api.service.models import Artifact, Job, JobState
+from api.service.settings import Settings
+from api.service.store import LocalStore, job_run_key, scene_files_key
+
+log = logging.getLogger("glint.runner")
+
+CONTENT_TYPES = {
+    ".exr": "image/x-exr",
+    ".ply": "application/x-ply",
+    ".pt": "application/octet-stream",
+    ".md": "text/markdown; charset=utf-8",
+    ".jsonl": "application/jsonl",
+    ".json": "application/json",
+    ".png": "image/png",
+    ".jpg": "image/jpeg",
+    ".txt": "text/plain; charset=utf-8",
+    ".obj": "model/obj",
+}
+
+
+def content_type(name: str) -> str:
+    ext = os.path.splitext(name)[1].lower()
+    return CONTENT_TYPES.get(ext) or mimetypes.guess_type(name)[0] or "application/octet-stream"
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with NaN/Inf replaced by None (JSON columns and responses reject them)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, int | str | bool) or value is None:
+        return value
+    try:  # numpy / torch scalars
+        return json_safe(float(value))
+    except (TypeError, ValueError):
+        return str(value)
+
+
+def _now() -> datetime:
+    return datetime.now(UTC)
+
+
+def claim(database: Database, job_id: str, stale_after_s: float, worker: str) -> str | None:
+    """Take the job for this runner; the new lease, or None if it is not claimable."""
+    lease = uuid.uuid4().hex
+    now = _now()
+    stale = now - timedelta(seconds=stale_after_s)
+    with database.write() as s:
+        res = s.execute(
+            update(Job)
+            .where(
+                Job.id == job_id,
+                or_(
+                    Job.state == JobState.QUEUED,
+                    (Job.state == JobState.RUNNING) & (Job.heartbeat_at < stale),
+                ),
+            )
+            .values(
+                state=JobState.RUNNING,
+                lease=lease,
+                worker=worker,
+                heartbeat_at=now,
+                attempts=Job.attempts + 1,
+                started_at=func.coalesce(Job.started_at, now),
+                updated_at=now,
+                version=Job.version + 1,
+                error=None,
+            )
+            .execution_options(synchronize_session=False)
+        )
+        if res.rowcount != 1:
+            return None
+        # the run folder is about to change: old registrations would describe other bytes
+        s.execute(delete(Artifact).where(Artifact.job_id == job_id))
+        return lease
+
+
+class _JobReporter:
+    """Turns trainer events into throttled, lease-fenced updates of the job row."""
+
+    def __init__(
+        self,
+        database: Database,
+        job_id: str,
+        lease: str,
+        settings: Settings,
+        stop: threading.Event | None = None,
+    ) -> None:
+        self.database = database
+        self.stop = stop
+        self.interrupted = False  # stopped because this process is shutting down
+        self.job_id = job_id
+        self.lease = lease
+        self.interval = settings.progress_interval_s
+        self.cancel_poll = settings.cancel_poll_s
+        self.pending: dict[str, Any] = {}
+        self.last_write = 0.0
+        self.last_poll = 0.0
+        self.cancelled = False
+        self.lost = False
+        self.lock = threading.Lock()
+
+    def _fenced(self) -> Update:
+        return update(Job).where(
+            Job.id == self.job_id, Job.lease == self.lease, Job.state == JobState.RUNNING
+        )
+
+    def on_event(self, event: dict[str, Any]) -> None:
+        kind = event.get("type")
+        if kind == "progress":
+            self.pending.update(
+                iteration=int(event["iteration"]),
+                total_iterations=int(event["total"]),
+                phase=str(event["phase"]),
+                n_gaussians=int(event["n_gaussians"]),
+                loss=json_safe(event.get("loss")),
+                elapsed_s=json_safe(event.get("elapsed")),
+                eta_s=json_safe(event.get("eta")),
+            )
+            last = event["iteration"] >= event["total"]
+            if last or time.monotonic() - self.last_write >= self.interval:
+                self.flush()
+        elif kind == "eval":
+            m = {k: v for k, v in event.items() if k != "type"}
+            self.pending["metrics"] = json_safe(m)
+        elif kind == "plan":
+            self.pending["plan"] = json_safe(event.get("plan"))
+        elif kind == "resumed":
+            self.pending["iteration"] = int(event["iteration"])
+            log.info("job %s: resumed from iteration %d", self.job_id, event["iteration"])
+            self.flush()
+
+    def flush(self) -> None:
+        """Write pending progress now (a failed write is logged and retried next time)."""
+        with self.lock:
+            if not self.pending or self.lost:
+                return
+            values = dict(self.pending)
+            now = _now()
+            try:
+                with self.database.write() as s:
+                    res = s.execute(
+                        self._fenced().values(
+                            **values, heartbeat_at=now, updated_at=now, version=Job.version + 1
+                        )
+                    )
+                    if res.rowcount == 0:
+                        self.lost = True
+            except Exception:
+                log.exception("job %s: progress write failed", self.job_id)
+                return
+            self.pending.clear()
+            self.last_write = time.monotonic()
+
+    def heartbeat(self) -> None:
+        with self.lock:
+            try:
+                with self.database.write() as s:
+                    res = s.execute(self._fenced().values(heartbeat_at=_now()))
+                    if res.rowcount == 0:
+                        self.lost = True
+            except Exception:
+                log.exception("job %s: heartbeat failed", self.job_id)
+
+    def should_stop(self) -> bool:
+        """True on shutdown, once a cancel was requested, or the lease was lost."""
+        if self.cancelled or self.lost or self.interrupted:
+            return True
+        if self.stop is not None and self.stop.is_set():
+            self.interrupted = True
+            return True
+        now = time.monotonic()
+        if now - self.last_poll < self.cancel_poll:
+            return False
+        self.last_poll = now
+        try:
+            with self.database.read() as s:
+                row = s.execute(
+                    select(Job.cancel_requested, Job.lease, Job.state).where(Job.id == self.job_id)
+                ).one_or_none()
+        except Exception:
+            log.exception("job %s: cancel check failed", self.job_id)
+            return False
+        if row is None or row.lease != self.lease or row.state != JobState.RUNNING:
+            self.lost = True
+        elif row.cancel_requested:
+            self.cancelled = True
+        return self.cancelled or self.lost
+
+
+class _Heartbeat(threading.Thread):
+    def __init__(self, reporter: _JobReporter, period: float) -> None:
+        super().__init__(name=f"glint-heartbeat-{reporter.job_id}", daemon=True)
+        self.reporter = reporter
+        self.period = period
+        self.stopped = threading.Event()
+
+    def run(self) -> None:
+        while not self.stopped.wait(self.period):
+            self.reporter.heartbeat()
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def collect_artifacts(run_dir: Path) -> list[dict[str, Any]]:
+    """Every regular file in the run folder, with size, hash and content type."""
+    out = []
+    if not run_dir.is_dir():
+        return out
+    for p in sorted(run_dir.rglob("*")):
+        if p.is_file() and not p.is_symlink() and not p.name.endswith(".tmp"):
+            name = p.relative_to(run_dir).as_posix()
+            out.append(
+                {
+                    "name": name,
+                    "size": p.stat().st_size,
+                    "sha256": _sha256(p),
+                    "content_type": content_type(name),
+                }
+            )
+    return out
+
+
+def _finish(
+    reporter: _JobReporter, state: str, error: str | None, artifacts: list[dict[str, Any]]
+) -> bool:
+    """Final state and artifacts in one fenced transaction; False if the lease was lost."""
+    now = _now()
+    values: dict[str, Any] = dict(reporter.pending)
+    values.update(
+        state=state,
+        error=error,
+        finished_at=now,
+        updated_at=now,
+        heartbeat_at=now,
+        lease=None,
+        version=Job.version + 1,
+    )
+    if state != JobState.CANCELLED:
+        values["cancel_requested"] = False
+    if state == JobState.SUCCEEDED:
+        values["eta_s"] = 0.0
+    with reporter.database.write() as s:
+        res = s.execute(reporter._fenced().values(**values))
+        if res.rowcount == 0:
+            return False
+        s.execute(delete(Artifact).where(Artifact.job_id == reporter.job_id))
+        for a in artifacts:
+            s.add(Artifact(job_id=reporter.job_id, **a))
+    return True
+
+
+def _release(reporter: _JobReporter) -> bool:
+    """Hand an interrupted job back: ``queued`` again, to be resumed by the next runner."""
+    now = _now()
+    values: dict[str, Any] = dict(reporter.pending)
+    values.update(state=JobState.QUEUED, lease=None, updated_at=now, version=Job.version + 1)
+    with reporter.database.write() as s:
+        return s.execute(reporter._fenced().values(**values)).rowcount == 1
+
+
+def _public_error(exc: BaseException, store_root: Path) -> str:
+    """The error for users: GlintErrors as they are, others with their type; no store paths."""
+    from core.errors import GlintError
+
+    msg = str(exc) if isinstance(exc, GlintError) else f"{type(exc).__name__}: {exc}"
+    for prefix in (str(store_root) + os.sep, str(store_root)):
+        msg = msg.replace(prefix, "")
+    return msg[:4000]
+
+
+def placed_config(config: dict[str, Any], device: str | None) -> tuple[dict[str, Any], str | None]:
+    """The job config this runner trains with, and a note when it changed the backend.
+
+    ``device`` (a worker's ``--device``) replaces the config's: where a job trains is
+    the runner's business. The backend follows the device: a job submitted with
+    ``backend: cuda`` that lands on a CPU worker (or ``cpu`` on a GPU one) would
+    otherwise fail on its first render, so such a backend gives way to ``auto``.
+    """
+    if not device:
+        return config, None
+    from core.render.raster import fallback_backend
+
+    config = {**config, "device": device}
+    _, why = fallback_backend(str(config.get("backend", "auto")), device)
+    if why is None:
+        return config, None
+    config["backend"] = "auto"
+    return config, f"{why}; this worker trains with 'auto' on {device}"
+
+
+def run_job(
+    job_id: str,
+    settings: Settings,
+    *,
+    database: Database | None = None,
+    worker: str | None = None,
+    stop: threading.Event | None = None,
+    device: str | None = None,
+) -> str | None:
+    """Claim and run one job; returns its final state, or None if it was not ours to run.
+
+    ``device`` (a worker's ``--device``) replaces the job config's torch device: where
+    a job trains is the runner's business, not the submitter's.
+
+    ``stop`` is the runner's shutdown signal: when it is set the trainer checkpoints
+    and returns, and the job goes back to ``queued`` (not ``cancelled``: nobody asked)
+    for the next runner to resume; the return value is then ``"queued"``.
+    """
+    database = database or database_for(settings.db_url)
+    store = LocalStore(settings.store_root)
+    worker = worker or f"{socket.gethostname()}:{os.getpid()}:{threading.get_ident()}"
+    lease = claim(database, job_id, settings.stale_after_s, worker)
+    if lease is None:
+        log.info("job %s: not claimable (taken, finished or cancelled)", job_id)
+        return None
+    with database.read() as s:
+        job = s.get(Job, job_id)
+        assert job is not None
+        config, scene_id = dict(job.config), job.scene_id
+    config, note = placed_config(config, device)
+    if note:
+        log.warning("job %s: %s", job_id, note)
+    reporter = _JobReporter(database, job_id, lease, settings, stop)
+    heartbeat = _Heartbeat(reporter, settings.heartbeat_s)
+    heartbeat.start()
+    run_dir = store.path(job_run_key(job_id))
+    state, error = JobState.FAILED, None
+    try:
+        from core.config import config_from_dict
+        from core.training.run import train_scene
+
+        cfg = config_from_dict(config, source="job config")
+        result, _summary = train_scene(
+            store.path(scene_files_key(scene_id)),
+            run_dir,
+            cfg,
+            on_event=reporter.on_event,
+            should_stop=reporter.should_stop,
+            resume=True,
+        )
+        state = JobState.SUCCEEDED if result.status == "succeeded" else JobState.CANCELLED
+    except Exception as exc:
+        log.exception("job %s failed", job_id)
+        error = _public_error(exc, store.root)
+    finally:
+        heartbeat.stopped.set()
+        heartbeat.join()
+    if reporter.lost:
+        log.warning("job %s: lease lost; leaving the job to its new runner", job_id)
+        return None
+    if reporter.interrupted and state == JobState.CANCELLED and not reporter.cancelled:
+        if _release(reporter):
+            log.info(
+                "job %s: interrupted by shutdown at iteration %s; re-queued",
+                job_id,
+                reporter.pending.get("iteration"),
+            )
+            return JobState.QUEUED
+        return None
+    try:
+        artifacts = collect_artifacts(run_dir)
+    except OSError as exc:
+        artifacts, state = [], JobState.FAILED
+        error = f"cannot read run folder: {exc}"
+    if not _finish(reporter, state, error, artifacts):
+        log.warning("job %s: lease lost before finishing", job_id)
+        return None
+    log.info("job %s: %s", job_id, state)
+    return state

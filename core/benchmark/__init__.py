@@ -1,0 +1,1 @@
+"""The ablation benchmark (``glint bench``): configurations, runner, tables."""

@@ -1,0 +1,402 @@
+"""Meshes from depth maps: TSDF fusion of the planar depths, marching cubes, clean-up.
+
+The paper scores geometry on meshes (Table 1, 3: Chamfer distance), extracted like
+PGSR's: render the planar depth (Eq. 8) of every training view, fuse the depth maps
+into a truncated signed distance field, and take its zero level set.
+
+- **Fusion** is vectorised torch over the voxels of a narrow band: the voxels within
+  the truncation distance of some back-projected surface pixel (for the dev teapot
+  1.4M of the 8.0M voxels of its 257×189×165 grid; 64 views fuse in about 13 s on
+  one CPU thread). Each view updates the voxels in front of (and up to one
+  truncation behind) its surface with the projective distance ``d(pixel) − z``;
+  pixels the view knows to be empty (outside its mask, or with no rendered
+  coverage when there is no mask) *carve*: the voxels they see get "empty", which
+  removes floaters outside the object's silhouettes.
+- **Bounds** tighten the scene's sphere (which loaders derive conservatively from the
+  cameras) to robust percentiles of the back-projected surface pixels; voxel size
+  and truncation default to 2·radius/256 and 4 voxels of the tightened box.
+- **Marching cubes** is scikit-image's Lewiner implementation (compiled, with the
+  topologically consistent tables; a torch port would be ~300 lines of tables and
+  tests for no gain at these sizes), restricted to edges between observed voxels so
+  that unobserved space never produces a surface. Cost: the dependency, and the TSDF
+  is copied to the CPU (32 MB per 256³ grid); extraction with colours and component
+  labelling takes about 1.6 s for the teapot grid above.
+- **Clean-up** keeps the largest connected component and any other at least
+  ``keep_fraction`` of its size (floaters inside the silhouettes become small islands).
+- **Colour**: each view's rendered colour is fused alongside the distance (only near
+  the surface) and interpolated trilinearly at the vertices.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.scene.cameras import Camera
+from core.scene.imageio import linear_to_srgb
+
+if TYPE_CHECKING:
+    import trimesh
+
+DEFAULT_RESOLUTION = 256
+DEFAULT_TRUNC_VOXELS = 4.0
+# Rendered coverage a pixel needs before its depth counts as a surface observation,
+# and below which (without a mask) the pixel counts as empty space.
+SURFACE_ALPHA = 0.5
+EMPTY_ALPHA = 0.05
+# A view's mask value below which its pixel is background (carved), above which object.
+MASK_EMPTY, MASK_OBJECT = 0.05, 0.5
+
+
+@dataclass
+class DepthFrame:
+    """One view's input to fusion.
+
+    ``depth`` (H, W) z-depth; ``valid`` (H, W) bool: a surface was observed at that
+    depth; ``empty`` (H, W) bool or None: the whole ray is known to be free space;
+    ``color`` (H, W, 3) linear RGB of the surface, or None.
+    """
+
+    camera: Camera
+    depth: Tensor
+    valid: Tensor
+    empty: Tensor | None = None
+    color: Tensor | None = None
+
+
+@dataclass
+class VoxelGrid:
+    """A regular grid: voxel (i, j, k) has its centre at ``origin + voxel · (i, j, k)``."""
+
+    origin: tuple[float, float, float]
+    voxel: float
+    shape: tuple[int, int, int]
+
+    @property
+    def count(self) -> int:
+        return self.shape[0] * self.shape[1] * self.shape[2]
+
+    def centers(self, flat_index: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+        """World positions (M, 3) of voxels given by flat (C-order) indices."""
+        _, ny, nz = self.shape
+        i = flat_index // (ny * nz)
+        j = (flat_index // nz) % ny
+        k = flat_index % nz
+        ijk = torch.stack([i, j, k], dim=-1).to(dtype)
+        return torch.tensor(self.origin, dtype=dtype, device=flat_index.device) + ijk * self.voxel
+
+    def index_of(self, points: Tensor) -> tuple[Tensor, Tensor]:
+        """Nearest voxel (M, 3) int64 of world points and whether it lies in the grid."""
+        o = torch.tensor(self.origin, dtype=points.dtype, device=points.device)
+        ijk = torch.round((points - o) / self.voxel).long()
+        hi = torch.tensor(self.shape, device=points.device)
+        inside = ((ijk >= 0) & (ijk < hi)).all(dim=-1)
+        return ijk, inside
+
+
+@dataclass
+class FusionParams:
+    """Grid and truncation actually used (recorded next to the mesh)."""
+
+    lo: list[float]
+    hi: list[float]
+    voxel: float
+    trunc: float
+    shape: list[int]
+    band_voxels: int = 0
+    frames: int = 0
+    carve: bool = True
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+def backproject_frames(frames: Sequence[DepthFrame]) -> Tensor:
+    """World points (M, 3) float64 of every valid pixel of every frame."""
+    pts = []
+    for f in frames:
+        if not bool(f.valid.any()):
+            continue
+        uv = f.camera.pixel_centers(torch.float64, f.depth.device)[f.valid]
+        pts.append(f.camera.backproject(uv, f.depth[f.valid].to(torch.float64)))
+    return torch.cat(pts) if pts else torch.zeros(0, 3, dtype=torch.float64)
+
+
+def fusion_bounds(
+    frames: Sequence[DepthFrame],
+    center: Tensor | Sequence[float] | None = None,
+    radius: float | None = None,
+    *,
+    percentile: float = 0.5,
+    margin: float = 0.1,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned box (lo, hi) of the surface seen in the frames.
+
+    Robust per-axis percentiles of the back-projected surface pixels (floaters far off
+    do not stretch the box), grown by ``margin`` × the box's largest side on every side
+    (percentiles clip the extreme tips), and clipped to the scene's bounding sphere
+    (``center``, ``radius``) when given.
+    """
+    pts = backproject_frames(frames).cpu().numpy()
+    if len(pts) == 0:
+        if center is None or radius is None:
+            raise ValueError("no valid depth in any frame and no scene bounds to fall back on")
+        c = np.asarray(center, dtype=np.float64)
+        return c - radius, c + radius
+    lo = np.percentile(pts, percentile, axis=0)
+    hi = np.percentile(pts, 100.0 - percentile, axis=0)
+    pad = margin * float(np.max(hi - lo)) + 1e-6
+    lo, hi = lo - pad, hi + pad
+    if center is not None and radius is not None:
+        c = np.asarray(torch.as_tensor(center, dtype=torch.float64).cpu(), dtype=np.float64)
+        lo, hi = np.maximum(lo, c - radius), np.minimum(hi, c + radius)
+        if np.any(hi <= lo):  # the surface lies outside the scene sphere: trust the surface
+            lo = np.percentile(pts, percentile, axis=0) - pad
+            hi = np.percentile(pts, 100.0 - percentile, axis=0) + pad
+    return lo, hi
+
+
+def make_grid(
+    lo: np.ndarray, hi: np.ndarray, voxel: float | None = None, resolution: int = DEFAULT_RESOLUTION
+) -> VoxelGrid:
+    """Grid covering [lo, hi]; voxel = 2·radius/resolution by default, radius = half
+    the box's largest side (the scene radius once the box is tightened)."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    if voxel is None:
+        voxel = float(np.max(hi - lo)) / resolution
+    if not voxel > 0:
+        raise ValueError(f"voxel size must be positive, got {voxel}")
+    nx, ny, nz = (math.ceil(s / voxel) + 1 for s in (hi - lo))
+    shape = (nx, ny, nz)
+    if shape[0] * shape[1] * shape[2] > 1024**3:
+        raise ValueError(f"voxel {voxel:g} gives a {shape} grid: too many voxels")
+    return VoxelGrid((float(lo[0]), float(lo[1]), float(lo[2])), float(voxel), shape)
+
+
+def narrow_band(frames: Sequence[DepthFrame], grid: VoxelGrid, trunc: float) -> Tensor:
+    """Flat indices (M,) of the voxels within ``trunc`` of a back-projected surface pixel."""
+    pts = backproject_frames(frames)
+    occ = torch.zeros(grid.shape, dtype=torch.float32)
+    if len(pts):
+        ijk, inside = grid.index_of(pts.cpu())
+        ijk = ijk[inside]
+        occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
+    r = math.ceil(trunc / grid.voxel)
+    if r > 0:
+        # separable max-pool = dilation by a (2r+1)³ cube
+        x = occ[None, None]
+        x = F.max_pool3d(x, (2 * r + 1, 1, 1), stride=1, padding=(r, 0, 0))
+        x = F.max_pool3d(x, (1, 2 * r + 1, 1), stride=1, padding=(0, r, 0))
+        x = F.max_pool3d(x, (1, 1, 2 * r + 1), stride=1, padding=(0, 0, r))
+        occ = x[0, 0]
+    return occ.reshape(-1).nonzero()[:, 0]
+
+
+class TSDFVolume:
+    """A truncated signed distance field over the narrow band of a voxel grid.
+
+    Values are the distance to the surface divided by ``trunc``, clipped to [−1, 1],
+    positive in front of the surface (free space), weighted running averages over
+    views. Voxels no view has observed keep weight 0 and never produce a surface.
+    """
+
+    def __init__(
+        self, grid: VoxelGrid, trunc: float, band: Tensor, *, device: torch.device | str = "cpu"
+    ) -> None:
+        if not trunc > 0:
+            raise ValueError(f"truncation must be positive, got {trunc}")
+        self.grid = grid
+        self.trunc = float(trunc)
+        self.device = torch.device(device)
+        self.index = band.to(self.device)
+        self.points = grid.centers(self.index)  # voxel centres (M, 3), float32
+        m = self.index.numel()
+        self.tsdf = torch.ones(m, device=self.device)
+        self.weight = torch.zeros(m, device=self.device)
+        self.color = torch.zeros(m, 3, device=self.device)
+        self.color_weight = torch.zeros(m, device=self.device)
+
+    @torch.no_grad()
+    def integrate(self, frame: DepthFrame, *, carve: bool = True, chunk: int = 1 << 22) -> None:
+        """Fuse one view (nearest-pixel depth lookup, projective distance along z).
+
+        Only the voxels the view updates are touched (index ops), so a view costs
+        one projection of the band plus work proportional to what it sees.
+        """
+        cam = frame.camera
+        H, W = cam.height, cam.width
+        depth = frame.depth.to(self.device, torch.float32).reshape(-1)
+        valid = frame.valid.to(self.device).reshape(-1)
+        empty = None
+        if carve and frame.empty is not None:
+            empty = frame.empty.to(self.device).reshape(-1)
+        color = None
+        if frame.color is not None:
+            color = frame.color.to(self.device, torch.float32).reshape(-1, 3)
+        # P = K [R | t]: (u·z, v·z, z) = P (x, 1)
+        P = cam.K(torch.float64) @ torch.cat([cam.R, cam.t[:, None]], 1)
+        P = P.to(self.device, torch.float32)
+        for s in range(0, self.points.shape[0], chunk):
+            uvz = self.points[s : s + chunk] @ P[:, :3].T + P[:, 3]
+            z = uvz[:, 2]
+            zs = z.clamp_min(1e-6)
+            u = torch.floor(uvz[:, 0] / zs)
+            v = torch.floor(uvz[:, 1] / zs)
+            inimg = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+            sel = inimg.nonzero()[:, 0]
+            pix = (v[sel] * W + u[sel]).long()
+            sdf = depth[pix] - z[sel]
+            upd = valid[pix] & (sdf > -self.trunc)
+            obs = (sdf / self.trunc).clamp(max=1.0)
+            if empty is not None:
+                free = empty[pix] & ~upd
+                obs = torch.where(free, torch.ones_like(obs), obs)
+                upd = upd | free
+            idx = sel[upd] + s
+            w = self.weight[idx]
+            self.tsdf[idx] = (self.tsdf[idx] * w + obs[upd]) / (w + 1.0)
+            self.weight[idx] = w + 1.0
+            if color is not None:
+                # colour only from surface observations near the surface, never carving
+                near = upd & (sdf.abs() < self.trunc) & valid[pix]
+                cidx = sel[near] + s
+                cw = self.color_weight[cidx]
+                c = color[pix[near]]
+                self.color[cidx] = (self.color[cidx] * cw[:, None] + c) / (cw + 1.0)[:, None]
+                self.color_weight[cidx] = cw + 1.0
+
+    def dense(self) -> tuple[np.ndarray, np.ndarray]:
+        """Dense TSDF (unobserved = +1) and observed mask, as numpy grids."""
+        n = self.grid.count
+        vol = torch.ones(n)
+        obs = torch.zeros(n, dtype=torch.bool)
+        seen = self.weight.cpu() > 0
+        idx = self.index.cpu()
+        vol[idx[seen]] = self.tsdf.cpu()[seen]
+        obs[idx[seen]] = True
+        return vol.reshape(self.grid.shape).numpy(), obs.reshape(self.grid.shape).numpy()
+
+    def vertex_colors(self, verts_ijk: np.ndarray) -> np.ndarray | None:
+        """Linear RGB (V, 3) at continuous voxel coordinates; None when nothing was fused."""
+        if not bool((self.color_weight > 0).any()):
+            return None
+        n = self.grid.count
+        has = (self.color_weight.cpu() > 0).float()
+        col = torch.zeros(n, 4)
+        col[self.index.cpu(), :3] = self.color.cpu() * has[:, None]
+        col[self.index.cpu(), 3] = has
+        vol = col.reshape(*self.grid.shape, 4).permute(3, 0, 1, 2)[None]  # (1, 4, X, Y, Z)
+        X, Y, Z = self.grid.shape
+        p = torch.as_tensor(np.ascontiguousarray(verts_ijk), dtype=torch.float32)
+        # grid_sample's (x, y, z) index (W, H, D) = our (k, j, i), normalised to [-1, 1]
+        g = torch.stack(
+            [
+                2 * p[:, 2] / max(Z - 1, 1) - 1,
+                2 * p[:, 1] / max(Y - 1, 1) - 1,
+                2 * p[:, 0] / max(X - 1, 1) - 1,
+            ],
+            -1,
+        )
+        s = F.grid_sample(vol, g[None, :, None, None], align_corners=True)[0, :, :, 0, 0].T
+        return (s[:, :3] / s[:, 3:].clamp_min(1e-6)).clamp(0, 1).numpy()
+
+
+def fuse_depth_frames(
+    frames: Sequence[DepthFrame],
+    *,
+    center: Tensor | Sequence[float] | None = None,
+    radius: float | None = None,
+    voxel: float | None = None,
+    trunc: float | None = None,
+    resolution: int = DEFAULT_RESOLUTION,
+    carve: bool = True,
+    device: torch.device | str = "cpu",
+) -> tuple[TSDFVolume, FusionParams]:
+    """Fuse depth frames into a TSDF over a grid fitted to the observed surface."""
+    if not frames:
+        raise ValueError("no frames to fuse")
+    lo, hi = fusion_bounds(frames, center, radius)
+    grid = make_grid(lo, hi, voxel, resolution)
+    trunc = float(trunc) if trunc is not None else DEFAULT_TRUNC_VOXELS * grid.voxel
+    band = narrow_band(frames, grid, trunc)
+    vol = TSDFVolume(grid, trunc, band, device=device)
+    for f in frames:
+        vol.integrate(f, carve=carve)
+    params = FusionParams(
+        lo=[float(x) for x in lo],
+        hi=[float(x) for x in hi],
+        voxel=grid.voxel,
+        trunc=trunc,
+        shape=list(grid.shape),
+        band_voxels=int(band.numel()),
+        frames=len(frames),
+        carve=carve,
+    )
+    return vol, params
+
+
+def _real_crossings(verts: np.ndarray, observed: np.ndarray) -> np.ndarray:
+    """(V,) bool: the vertex lies on a grid edge whose two end voxels were both observed.
+
+    Marching cubes puts each vertex on the edge between two voxels; if one of them
+    was never observed (value +1 by convention), the crossing is an artefact (e.g. a
+    false shell at the inner edge of the band). scikit-image's ``mask`` does not rule
+    these out on its own, so they are filtered here.
+    """
+    r = np.round(verts)
+    near = np.abs(verts - r) < 1e-6
+    lo = np.where(near, r, np.floor(verts)).astype(np.int64)
+    hi = np.where(near, r, np.ceil(verts)).astype(np.int64)
+    hi = np.minimum(hi, np.asarray(observed.shape) - 1)
+    return observed[lo[:, 0], lo[:, 1], lo[:, 2]] & observed[hi[:, 0], hi[:, 1], hi[:, 2]]
+
+
+def extract_mesh(vol: TSDFVolume) -> trimesh.Trimesh:
+    """Zero level set by marching cubes over observed voxels, outward-facing, coloured."""
+    import trimesh
+    from skimage.measure import marching_cubes
+
+    tsdf, observed = vol.dense()
+    if not (observed.any() and (tsdf[observed] < 0).any() and (tsdf[observed] > 0).any()):
+        return trimesh.Trimesh(np.zeros((0, 3)), np.zeros((0, 3), dtype=np.int64))
+    verts, faces, _, _ = marching_cubes(tsdf, level=0.0, mask=observed)
+    faces = faces[_real_crossings(verts, observed)[faces].all(axis=1)]
+    g = vol.grid
+    world = np.asarray(g.origin) + verts.astype(np.float64) * g.voxel
+    colors = vol.vertex_colors(verts)
+    vc = None
+    if colors is not None:
+        srgb = np.asarray(linear_to_srgb(np.clip(colors, 0.0, 1.0)))
+        vc = np.concatenate([np.round(srgb * 255), np.full((len(srgb), 1), 255)], 1).astype(
+            np.uint8
+        )
+    return trimesh.Trimesh(world, faces.astype(np.int64), vertex_colors=vc, process=True)
+
+
+def keep_largest_components(
+    mesh: trimesh.Trimesh, keep_fraction: float = 0.1
+) -> tuple[trimesh.Trimesh, dict[str, int]]:
+    """Keep the largest connected component (by faces) and any with ≥ ``keep_fraction``
+    of its faces; returns the mesh and how many components/faces were dropped."""
+    import trimesh
+
+    nf = len(mesh.faces)
+    if nf == 0:
+        return mesh, {"components": 0, "kept": 0, "faces_dropped": 0}
+    labels = trimesh.graph.connected_component_labels(mesh.face_adjacency, node_count=nf)
+    sizes = np.bincount(labels)
+    keep_labels = np.nonzero(sizes >= keep_fraction * sizes.max())[0]
+    keep = np.isin(labels, keep_labels)
+    out = mesh.submesh([np.nonzero(keep)[0]], append=True, repair=False)
+    stats = {
+        "components": len(sizes),
+        "kept": len(keep_labels),
+        "faces_dropped": int(nf - keep.sum()),
+    }
+    return out, stats

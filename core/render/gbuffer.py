@@ -1,0 +1,240 @@
+"""The G-buffer: one splatting pass gives everything deferred shading and the
+geometric losses need (paper Sect. 4.1, Eq. 5, 6, 8)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from core.render.gbuffer_compiled import can_build_compiled, features_compiled
+from core.render.raster import RasterResult, rasterize
+from core.scene.cameras import Camera
+
+if TYPE_CHECKING:
+    from core.render.gaussians import Gaussians
+
+
+# Pixels whose accumulated opacity is below this have no depth (Eq. 5 and Eq. 8).
+MIN_ALPHA = 0.05
+# Pixels whose blended normal is this close to perpendicular to the ray (|cos| below,
+# about 87.1°) have no planar depth: 1/cos amplifies any normal error beyond use.
+MIN_COS = 0.05
+# Near plane as a fraction of the median depth of the Gaussians in front of the
+# camera. A fixed near plane in world units makes rendering depend on the scene's
+# unit: at the rasteriser's 0.01 a scene in millimetres (object ~3e-3 away) was
+# culled entirely. Relative to the view's own depth scale it is unit-free.
+NEAR_FRACTION = 1e-3
+
+
+@dataclass
+class GBuffer:
+    """Per-pixel buffers of one view; all (H, W[, C]) float tensors on one device.
+
+    - ``base``: blended base colour (SH evaluated for this view), (H, W, 3).
+    - ``normal``: blended camera-space normal (OpenCV axes, not normalised), (H, W, 3).
+    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W).
+    - ``w_r``: blended reflection strength in [0, 1], (H, W).
+    - ``alpha``: accumulated opacity, (H, W).
+    - ``camera``: the view these buffers belong to.
+    - ``z_blend``: blended centre z Σ z_i α_i T_i (premultiplied), (H, W); None when
+      the buffers were not splatted (then ``center_depth`` is unavailable).
+
+    Derived on first use and then kept (a viewer frame of the final colour never pays
+    for depth):
+
+    - ``depth``: planar z-depth d = D / (N·r̃) (Eq. 8), 0 where invalid, (H, W).
+    - ``depth_valid``: bool (H, W), False where alpha or |N·r̃| is too small.
+    - ``center_depth``: conventional blended centre depth (Eq. 5) divided by alpha
+      where alpha is large enough, 0 elsewhere, (H, W).
+    """
+
+    base: Tensor
+    normal: Tensor
+    plane_dist: Tensor
+    w_r: Tensor
+    alpha: Tensor
+    camera: Camera
+    z_blend: Tensor | None = None
+    min_alpha: float = MIN_ALPHA
+    min_cos: float = MIN_COS
+
+    @cached_property
+    def _planar(self) -> tuple[Tensor, Tensor]:
+        return planar_depth(
+            self.normal,
+            self.plane_dist,
+            self.alpha,
+            self.camera,
+            min_alpha=self.min_alpha,
+            min_cos=self.min_cos,
+        )
+
+    @property
+    def depth(self) -> Tensor:
+        return self._planar[0]
+
+    @property
+    def depth_valid(self) -> Tensor:
+        return self._planar[1]
+
+    @cached_property
+    def center_depth(self) -> Tensor:
+        if self.z_blend is None:
+            raise ValueError("this G-buffer has no blended centre z (it was not splatted)")
+        covered = self.alpha > self.min_alpha
+        return torch.where(covered, self.z_blend / torch.where(covered, self.alpha, 1.0), 0.0)
+
+
+_C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
+
+
+def gbuffer_features(
+    means: Tensor,
+    colors: Tensor,
+    normals_world: Tensor,
+    w_r: Tensor,
+    camera: Camera,
+    *,
+    compiled: bool = True,
+) -> Tensor:
+    """(N, 9) channels each Gaussian splats: base (3), facing camera normal (3), D, w_r, z.
+
+    Gradient-free CPU calls (viewer frames, evaluation renders) take the compiled
+    kernel of ``core.render.gbuffer_compiled``; ``compiled=False`` keeps this PyTorch path, the
+    reference it is tested against.
+    """
+    if compiled and can_build_compiled(means, colors, normals_world, w_r):
+        return features_compiled(means, colors, normals_world, w_r, camera)
+    R = camera.R.to(means)
+    mu_cam = means @ R.T + camera.t.to(means)
+    n_cam = normals_world @ R.T
+    # Eq. 6 normals flipped so each faces the camera (n·μ_cam ≤ 0).
+    sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
+    n_cam = n_cam * sign
+    D = (n_cam * mu_cam).sum(-1, keepdim=True)
+    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+
+
+def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
+    """Scale-free near plane: ``fraction`` × the median of the positive camera depths.
+
+    ``z_cam`` (N,) are the Gaussians' camera-space z. With none in front of the
+    camera nothing is visible and any positive value will do (1.0 is returned).
+    """
+    z = z_cam.detach()
+    z = z[torch.isfinite(z) & (z > 0)]
+    if z.numel() == 0:
+        return 1.0
+    return fraction * float(z.median())
+
+
+def planar_depth(
+    normal: Tensor,
+    plane_dist: Tensor,
+    alpha: Tensor,
+    camera: Camera,
+    *,
+    min_alpha: float = MIN_ALPHA,
+    min_cos: float = MIN_COS,
+) -> tuple[Tensor, Tensor]:
+    """Eq. 8 per pixel: d = D / (N·r̃) with r̃ = K⁻¹(u, v, 1); (depth, valid).
+
+    Invalid pixels (low alpha, grazing normal, non-positive or non-finite depth) get
+    depth 0 and no gradient: the division is guarded, never Inf or NaN.
+    """
+    rays = camera.camera_rays(normal.dtype, normal.device)
+    ndotr = (normal * rays).sum(-1)
+    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
+    cos = ndotr.abs() / norm.clamp_min(1e-30)
+    valid = (alpha > min_alpha) & (cos > min_cos) & (norm > 0)
+    safe_den = torch.where(valid, ndotr, torch.ones_like(ndotr))
+    d = plane_dist / safe_den
+    valid = valid & (d > 0) & torch.isfinite(d)
+    depth = torch.where(valid, d, torch.zeros_like(d))
+    return depth, valid
+
+
+def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
+    """(depth, valid) that losses, exports and meshes use: planar Eq. 8, or the Eq. 5
+    blended centre depth of the ablation (valid wherever it was computed)."""
+    if planar:
+        return gb.depth, gb.depth_valid
+    return gb.center_depth, gb.alpha > MIN_ALPHA
+
+
+def render_gbuffer_tensors(
+    means: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
+    opacities: Tensor,
+    colors: Tensor,
+    normals_world: Tensor,
+    w_r: Tensor,
+    camera: Camera,
+    *,
+    covariances: Tensor | None = None,
+    backend: str = "auto",
+    min_alpha: float = MIN_ALPHA,
+    min_cos: float = MIN_COS,
+    near: float | None = None,
+    absgrad: bool = False,
+    antialiased: bool = False,
+) -> tuple[GBuffer, RasterResult]:
+    """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
+
+    ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
+    are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
+    (world units) defaults to :func:`near_plane` of this view, so the same scene in
+    millimetres, metres or kilometres renders the same images.
+    """
+    feats = gbuffer_features(means, colors, normals_world, w_r, camera)
+    if near is None:
+        near = near_plane(feats[:, _C_Z])
+    res = rasterize(
+        means,
+        quats,
+        scales,
+        opacities,
+        feats,
+        camera,
+        covariances=covariances,
+        backend=backend,
+        near=near,
+        absgrad=absgrad,
+        antialiased=antialiased,
+    )
+    f = res.features
+    gb = GBuffer(
+        base=f[..., _C_BASE],
+        normal=f[..., _C_NORMAL],
+        plane_dist=f[..., _C_PLANE],
+        w_r=f[..., _C_WR],
+        alpha=res.alpha,
+        camera=camera,
+        z_blend=f[..., _C_Z],
+        min_alpha=min_alpha,
+        min_cos=min_cos,
+    )
+    return gb, res
+
+
+def render_gbuffer(
+    gaussians: Gaussians, camera: Camera, *, sh_degree: int, backend: str = "auto", **kw
+) -> tuple[GBuffer, RasterResult]:
+    """G-buffer of a Gaussian model for one view (SH evaluated toward this camera)."""
+    return render_gbuffer_tensors(
+        gaussians.params["means"],
+        gaussians.unit_quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.colors(camera, sh_degree),
+        gaussians.normals(),
+        gaussians.w_r,
+        camera,
+        backend=backend,
+        **kw,
+    )

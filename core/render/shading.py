@@ -1,0 +1,109 @@
+"""Deferred shading (paper Sect. 4.2, Eq. 9): C = base + w_r · E(reflect(r̂, n̂)) per pixel.
+
+Compositing. The rasteriser blends every G-buffer channel like a colour,
+X = Σ_i x_i α_i T_i, so ``base`` and ``w_r`` are premultiplied by the pixel's coverage
+``alpha`` = Σ_i α_i T_i. The specular term uses that premultiplied w_r as is, so it is
+weighted by coverage exactly like the base colour (a half-covered mirror pixel reflects
+half the environment), and the background fills the uncovered part:
+
+    final = base + w_r · E(reflect(r̂, n̂)) + (1 − alpha) · background
+
+The blended normal is premultiplied too, but only its direction is used (it is
+normalised), so coverage does not bend the reflection. Where alpha ≈ 0 the normal is
+≈ 0: the safe normalisation maps it to the zero vector, the reflection of the view
+ray about a zero normal is the view ray itself, and everything stays finite.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from core.render.envmap import EnvMap
+from core.render.gbuffer import GBuffer
+from core.render.shading_compiled import can_shade_compiled, shade_compiled
+
+
+@dataclass
+class ShadeResult:
+    """Deferred-shading outputs of one view, all (H, W[, 3]) on the G-buffer's device.
+
+    - ``final``: base + specular + (1 − alpha) · background, (H, W, 3).
+    - ``base``: the blended (premultiplied) base colour, (H, W, 3).
+    - ``specular``: w_r · E(reflected_dir), (H, W, 3); zeros when shading is disabled.
+    - ``w_r``: blended (premultiplied) reflection strength, (H, W).
+    - ``reflected_dir``: unit world-space reflection directions, (H, W, 3); ``None``
+      when shading is disabled (nothing is computed then).
+    """
+
+    final: Tensor
+    base: Tensor
+    specular: Tensor
+    w_r: Tensor
+    reflected_dir: Tensor | None
+
+
+def safe_normalize(x: Tensor, eps: float = 1e-12) -> Tensor:
+    """x / |x| along the last axis; vectors shorter than ``eps`` shrink towards 0 instead
+    of dividing by ~0, so a zero vector gives 0 with a finite gradient."""
+    return x * torch.rsqrt((x * x).sum(dim=-1, keepdim=True).clamp_min(eps * eps))
+
+
+def reflect(view_dirs: Tensor, normals: Tensor) -> Tensor:
+    """Mirror r̂ about n̂: r̂ − 2 (r̂·n̂) n̂ with both inputs normalised safely, (..., 3).
+
+    The sign of the normal does not matter. A zero normal leaves r̂ unchanged.
+    """
+    r = safe_normalize(view_dirs)
+    n = safe_normalize(normals)
+    return r - 2.0 * (r * n).sum(dim=-1, keepdim=True) * n
+
+
+def world_normals(gbuffer: GBuffer) -> Tensor:
+    """Unit world-space normals R^T n̂ from the G-buffer's camera-space normals, (H, W, 3)."""
+    n = gbuffer.normal
+    R = gbuffer.camera.R.to(dtype=n.dtype, device=n.device)
+    return safe_normalize(n @ R)  # row-vector form of R^T n
+
+
+def deferred_shade(
+    gbuffer: GBuffer,
+    envmap: EnvMap | None,
+    background: Tensor,
+    enabled: bool = True,
+    *,
+    compiled: bool = True,
+) -> ShadeResult:
+    """Eq. 9 for one view; see the module docstring for how coverage is composited.
+
+    ``enabled=False`` is the "no deferred shading" ablation: the image is the SH/base
+    colour over the background, and ``envmap`` is neither read nor required (may be None).
+    On the CPU, when no gradient is wanted (viewer frames, evaluation renders), the
+    compiled kernel of ``core.render.shading_compiled`` shades the frame in one pass;
+    ``compiled=False`` keeps the PyTorch path, the reference it is tested against.
+    """
+    base, alpha, w_r = gbuffer.base, gbuffer.alpha, gbuffer.w_r
+    h, w = base.shape[:2]
+    cam = gbuffer.camera
+    if (cam.height, cam.width) != (h, w):
+        raise ValueError(f"G-buffer is {h}x{w} but its camera is {cam.height}x{cam.width} (H x W)")
+    bg = torch.as_tensor(background, dtype=base.dtype, device=base.device).reshape(-1)
+    if bg.numel() != base.shape[-1]:
+        raise ValueError(f"background must have {base.shape[-1]} values, got {bg.numel()}")
+    fill = (1.0 - alpha).unsqueeze(-1) * bg
+
+    if not enabled:
+        return ShadeResult(base + fill, base, torch.zeros_like(base), w_r, None)
+    if envmap is None:
+        raise ValueError("deferred shading is enabled but no environment map was given")
+
+    tensors = (base, gbuffer.normal, w_r, alpha)
+    if compiled and can_shade_compiled(tensors, envmap):
+        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap)
+        return ShadeResult(final, base, specular, w_r, refl)
+    _, view = cam.world_rays(dtype=base.dtype, device=base.device)
+    refl = reflect(view, world_normals(gbuffer))
+    specular = w_r.unsqueeze(-1) * envmap.sample(refl)
+    return ShadeResult(base + specular + fill, base, specular, w_r, refl)

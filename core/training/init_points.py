@@ -1,0 +1,92 @@
+"""Initial points for scenes that come without a sparse cloud.
+
+Object captures with masks (alpha or mask files) get points on the surface of the
+visual hull: rays through masked pixels are marched from the camera and the first
+sample that falls inside the masks of (almost) every other view that sees it is
+kept, coloured by its pixel. This puts Gaussians where the object is from the
+first iteration; a random ball needs thousands of iterations to get there.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from core.scene.views import Scene
+from core.training.losses import bilinear_lookup
+
+
+def _inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
+    """(M,) bool: inside the mask in ≥ ``min_fraction`` of the views that see the point."""
+    inside = torch.zeros(points.shape[0])
+    seen = torch.zeros(points.shape[0])
+    for v in scene.train:
+        if v.mask is None:
+            continue
+        uv, z = v.camera.project(points)
+        m, ok = bilinear_lookup(v.mask, uv.to(v.mask.dtype))
+        ok = ok & (z > 0)
+        seen += ok.float()
+        inside += (ok & (m > 0.5)).float()
+    return (seen > 0) & (inside >= min_fraction * seen)
+
+
+@torch.no_grad()
+def visual_hull_points(
+    scene: Scene,
+    n: int,
+    *,
+    samples_per_ray: int = 64,
+    min_fraction: float = 0.9,
+    seed: int = 0,
+) -> tuple[Tensor, Tensor] | None:
+    """Up to ``n`` points (float64) with linear colours on the visual-hull surface.
+
+    Returns None when the scene has no masks or no ray finds the hull.
+    """
+    views = [v for v in scene.train if v.mask is not None]
+    if not views:
+        return None
+    gen = torch.Generator().manual_seed(seed)
+    per_view = max(1, (2 * n) // len(views))
+    pts, cols = [], []
+    c, r = scene.center.to(torch.float64), float(scene.radius)
+    for v in views:
+        idx = (v.mask.reshape(-1) > 0.5).nonzero()[:, 0]
+        if idx.numel() == 0:
+            continue
+        pick = idx[torch.randint(idx.numel(), (per_view,), generator=gen)]
+        W = v.width
+        uv = torch.stack([(pick % W).double() + 0.5, (pick // W).double() + 0.5], -1)
+        uv = uv + torch.rand(uv.shape, generator=gen, dtype=torch.float64) - 0.5
+        o = v.camera.center
+        d = v.camera.backproject(uv, torch.ones(per_view, dtype=torch.float64)) - o
+        d = d / d.norm(dim=-1, keepdim=True)
+        # March through the bounding sphere along each ray.
+        oc = o - c
+        b = (d * oc).sum(-1)
+        disc = b * b - (oc * oc).sum() + r * r
+        hit = disc > 0
+        t0 = (-b - disc.clamp_min(0).sqrt()).clamp_min(1e-6)
+        t1 = -b + disc.clamp_min(0).sqrt()
+        s = torch.linspace(0, 1, samples_per_ray, dtype=torch.float64)
+        t = t0[:, None] + (t1 - t0)[:, None] * s[None]
+        P = o + d[:, None, :] * t[..., None]
+        inside = _inside_hull(P.reshape(-1, 3), scene, min_fraction).reshape(per_view, -1)
+        inside &= hit[:, None]
+        found = inside.any(1)
+        first = inside.float().argmax(1)
+        sel = found.nonzero()[:, 0]
+        if sel.numel() == 0:
+            continue
+        pts.append(P[sel, first[sel]])
+        rgb = v.image.reshape(-1, 3)[pick[sel]]
+        cols.append(rgb.double())
+    if not pts:
+        return None
+    P = torch.cat(pts)
+    C = torch.cat(cols)
+    if P.shape[0] > n:
+        keep = torch.randperm(P.shape[0], generator=gen)[:n]
+        P, C = P[keep], C[keep]
+    return P, C

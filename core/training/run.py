@@ -1,0 +1,60 @@
+"""Train a scene folder into a run folder: the one entry the CLI and the worker share."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from core.config import TrainConfig
+from core.evaluation.geometry import geometry_errors
+from core.model.run_folder import record_scene
+from core.outputs.export import export_run
+from core.scene.formats import load_scene
+from core.scene.views import Scene
+from core.training.trainer import Trainer, TrainResult, check_runnable
+
+RENDERED_VIEWS = 4  # test views whose every channel an export writes to renders/
+
+
+def train_scene(
+    scene: str | Path | Scene,
+    out_dir: str | Path,
+    cfg: TrainConfig,
+    *,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+    progress: bool = False,
+    resume: bool = True,
+    export: bool = True,
+) -> tuple[TrainResult, dict[str, Any] | None]:
+    """Load (if a path), train or resume, and export artifacts when training finished."""
+    check_runnable(cfg)  # a missing GPU or backend fails here, before the run folder is made
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if not isinstance(scene, Scene):
+        record_scene(out, scene)  # so `glint mesh/eval RUN` find the scene again
+        scene = load_scene(scene, downscale=1.0 / cfg.resolution_scale)
+    (out / "config.json").write_text(json.dumps(cfg.model_dump(mode="json"), indent=2))
+    trainer = Trainer(
+        scene, cfg, out, on_event=on_event, should_stop=should_stop, progress=progress
+    )
+    trainer.setup(resume=resume)
+    result = trainer.train()
+    summary = None
+    if export and result.status == "succeeded":
+        summary = export_trained(trainer)
+        if on_event:
+            on_event({"type": "exported", **summary})
+    return result, summary
+
+
+def export_trained(trainer: Trainer) -> dict[str, Any]:
+    """Export a trainer's model into its run folder, with its geometry error when the
+    scene ships ground-truth maps."""
+    model = trainer.model
+    scene = trainer.scene
+    geo = geometry_errors(model, scene.test or scene.train, scene.root)
+    views = trainer.progress_views()[:RENDERED_VIEWS]
+    return export_run(model, trainer.out, views, geometry=geo)

@@ -1,0 +1,493 @@
+"""Phased PGSR-DR training: composes schedule, losses, densification, plan and reports.
+
+The loop is deliberately thin: each concern lives in its own module and is tested
+there. The trainer owns the state that must survive a restart (parameters,
+optimizers, densification accumulators, RNG, clock) and writes it atomically.
+"""
+
+from __future__ import annotations
+
+import math
+import random
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from core.config import ConfigError, TrainConfig
+from core.devices import require_device
+from core.errors import BackendUnavailableError
+from core.evaluation.metrics import psnr, ssim_srgb
+from core.model.checkpoint import load_checkpoint, save_checkpoint
+from core.model.plan import ScenePlan
+from core.model.schedule import Marks, Phase, phase_at
+from core.model.trained import (
+    CHECKPOINT_NAME,
+    TrainedModel,
+    envmap_from_state,
+    scene_record,
+)
+from core.outputs.report import MetricsLog
+from core.render.envmap import EnvMap
+from core.render.gaussians import Gaussians
+from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
+from core.render.raster import resolve_backend
+from core.render.shading import ShadeResult, deferred_shade
+from core.scene.views import Scene, View
+from core.training.densify import DensifyStrategy
+from core.training.init_points import visual_hull_points
+from core.training.losses import (
+    edge_weight,
+    multi_view_loss,
+    rgb_loss,
+    scale_loss,
+    single_view_loss,
+)
+from core.training.optim import make_optimizers, means_lr, set_lr
+from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
+
+Event = dict[str, Any]
+
+
+@dataclass
+class TrainResult:
+    status: str  # "succeeded" | "cancelled"
+    iteration: int
+    train_seconds: float
+    last_metrics: dict[str, Any] = field(default_factory=dict)
+
+
+def background_color(cfg: TrainConfig, device: torch.device, gen: torch.Generator) -> Tensor:
+    bg = cfg.background
+    if bg == "white":
+        return torch.ones(3, device=device)
+    if bg == "black":
+        return torch.zeros(3, device=device)
+    if bg == "random":
+        return torch.rand(3, generator=gen).to(device)
+    return torch.tensor(bg, dtype=torch.float32, device=device)
+
+
+def check_runnable(cfg: TrainConfig) -> torch.device:
+    """The run's device, after refusing what this machine cannot train.
+
+    Called before anything is written, so a wrong device or backend leaves no half-made
+    run folder: the device must exist, the backend must run on it, and
+    ``densify.absgrad`` needs the CUDA backend. Errors name the field.
+    """
+    device = require_device(cfg.device)
+    try:
+        backend = resolve_backend(cfg.backend, device)
+    except BackendUnavailableError as exc:
+        raise BackendUnavailableError(f"field 'backend': {exc}") from None
+    if cfg.densify.absgrad and backend != "cuda":
+        raise ConfigError(
+            "field 'densify.absgrad': AbsGS gradients come from gsplat; it needs "
+            f"backend cuda on a CUDA device (this run: backend '{cfg.backend}' on {device})"
+        )
+    return device
+
+
+def forward_view(
+    gaussians: Gaussians,
+    envmap: EnvMap | None,
+    view_camera,
+    phase: Phase,
+    background: Tensor,
+    backend: str,
+    *,
+    absgrad: bool = False,
+) -> tuple[GBuffer, ShadeResult, Any]:
+    """The training forward pass of one view: G-buffer + deferred shading for ``phase``
+    (with gradients; readers of a trained model use ``TrainedModel.render``)."""
+    gb, res = render_gbuffer(
+        gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
+        antialiased=phase.antialiased,
+    )  # fmt: skip
+    shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
+    return gb, shade, res
+
+
+class Trainer:
+    """Trains one scene into ``out_dir``; resumable; reports through ``on_event``."""
+
+    def __init__(
+        self,
+        scene: Scene,
+        cfg: TrainConfig,
+        out_dir: str | Path,
+        *,
+        on_event: Callable[[Event], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        progress: bool = False,
+    ) -> None:
+        if not scene.train:
+            raise ValueError("scene has no training views")
+        self.device = check_runnable(cfg)  # before anything is written
+        self.scene = scene
+        self.cfg = cfg
+        self.out = Path(out_dir)
+        self.out.mkdir(parents=True, exist_ok=True)
+        self.on_event = on_event or (lambda e: None)
+        self.should_stop = should_stop or (lambda: False)
+        self.progress = progress
+        self.radius = float(scene.radius)
+        self.marks = Marks.of(cfg)
+        self.gen = torch.Generator().manual_seed(cfg.seed)
+        self.iteration = 0
+        self.train_seconds = 0.0
+        self.skipped_steps = 0
+        self.metrics = MetricsLog(self.out / "metrics.jsonl")
+        self._order: list[int] = []
+        self._targets = [self._to_device(v) for v in scene.train]
+        self.plan: ScenePlan = plan_scene(scene, cfg)
+        self.gaussians: Gaussians
+        self.envmap: EnvMap | None = None
+        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.strategy = DensifyStrategy(cfg, self.radius)
+        self.last_eval: dict[str, Any] = {}
+        self.last_losses: dict[str, float] = {}
+
+    # -- setup ------------------------------------------------------------
+    def _to_device(self, v: View) -> View:
+        mask = None if v.mask is None else v.mask.to(self.device)
+        return View(v.camera, v.image.to(self.device), mask, v.name, v.path)
+
+    def _init_fresh(self) -> None:
+        random.seed(self.cfg.seed)
+        np.random.seed(self.cfg.seed % (2**32))
+        torch.manual_seed(self.cfg.seed)
+        kw = {
+            "sh_degree": self.cfg.sh_degree,
+            "init_opacity": self.cfg.init_opacity,
+            "init_refl": self.cfg.init_refl,
+        }
+        hull = None
+        if self.scene.points is None and self.scene.has_masks:
+            hull = visual_hull_points(self.scene, self.cfg.init_points, seed=self.cfg.seed)
+        if hull is not None:
+            g = Gaussians.from_points(hull[0], hull[1], radius=self.radius, **kw)
+            self.plan.init = {"method": "visual hull of the masks", "points": g.num}
+        else:
+            g = Gaussians.from_scene(
+                self.scene, n_random=self.cfg.init_points, seed=self.cfg.seed, **kw
+            )
+            method = "sparse point cloud" if self.scene.points is not None else "random in bounds"
+            self.plan.init = {"method": method, "points": g.num}
+        self.gaussians = g.to(self.device)
+        if self.plan.envmap_possible(self.cfg):
+            self.envmap = EnvMap(int(self.plan.envmap_resolution.value)).to(self.device)
+        self.optimizers = self._make_optimizers()
+        self.plan.save(self.out / "plan.json")
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        opts: dict[str, torch.optim.Optimizer] = dict(
+            make_optimizers(self.gaussians, self.cfg, self.radius)
+        )
+        if self.envmap is not None:
+            opts["envmap"] = torch.optim.Adam(self.envmap.parameters(), lr=self.cfg.lr.envmap)
+        return opts
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return self.out / CHECKPOINT_NAME
+
+    def setup(self, resume: bool = True) -> None:
+        """Start fresh, or continue from ``out_dir/checkpoint.pt`` when it exists."""
+        if resume and self.checkpoint_path.is_file():
+            self._load(self.checkpoint_path)
+        else:
+            self.metrics.truncate_after(-1)
+            self._init_fresh()
+
+    # -- checkpoints ------------------------------------------------------
+    def save(self, path: Path | None = None) -> Path:
+        path = path or self.checkpoint_path
+        extra = {
+            "iteration": self.iteration,
+            "train_seconds": self.train_seconds,
+            "skipped_steps": self.skipped_steps,
+            "config": self.cfg.model_dump(mode="json"),
+            "plan": self.plan.to_dict(),
+            "optimizers": {k: o.state_dict() for k, o in self.optimizers.items()},
+            "densify": self.strategy.state_dict(),
+            "envmap": None if self.envmap is None else self.envmap.state_dict(),
+            "scene": scene_record(
+                self.scene.center, self.radius, [v.camera for v in self.scene.train]
+            ),
+            "order": list(self._order),
+            "rng_torch": torch.get_rng_state(),
+            "rng_gen": self.gen.get_state(),
+            "rng_python": list(random.getstate()[1]),
+            "rng_python_pos": random.getstate()[2] if random.getstate()[2] is not None else -1,
+        }
+        save_checkpoint(path, self.gaussians, extra)
+        self.on_event({"type": "checkpoint", "iteration": self.iteration, "path": str(path)})
+        return path
+
+    def _load(self, path: Path) -> None:
+        ck = load_checkpoint(path, self.device)
+        x = ck.extra
+        self.gaussians = ck.gaussians
+        for p in self.gaussians.params.values():
+            p.requires_grad_(True)
+        self.plan = ScenePlan.from_dict(x["plan"])
+        self.envmap = envmap_from_state(x.get("envmap"), self.device)
+        self.optimizers = self._make_optimizers()
+        for k, o in self.optimizers.items():
+            if k in x["optimizers"]:
+                o.load_state_dict(x["optimizers"][k])
+        self.strategy.load_state_dict(x["densify"])
+        self.iteration = int(x["iteration"])
+        self.train_seconds = float(x["train_seconds"])
+        self.skipped_steps = int(x["skipped_steps"])
+        self._order = [int(i) for i in x["order"]]
+        torch.set_rng_state(x["rng_torch"].cpu())
+        self.gen.set_state(x["rng_gen"].cpu())
+        pos = int(x["rng_python_pos"])
+        random.setstate((3, tuple(int(v) for v in x["rng_python"]), None if pos < 0 else pos))
+        self.metrics.truncate_after(self.iteration)
+        self.on_event({"type": "resumed", "iteration": self.iteration})
+
+    # -- one step ---------------------------------------------------------
+    def _next_view(self) -> int:
+        if not self._order:
+            self._order = torch.randperm(len(self.scene.train), generator=self.gen).tolist()
+        return self._order.pop()
+
+    def current_phase(self, iteration: int | None = None) -> Phase:
+        it = self.iteration if iteration is None else iteration
+        return phase_at(
+            self.cfg,
+            it,
+            envmap_planned=bool(self.plan.envmap.value),
+            multi_view_planned=bool(self.plan.multi_view.value),
+            max_sh_degree=int(self.plan.sh_degree.value),
+        )
+
+    def _gradient_ratios(self) -> list[Tensor]:
+        """Each parameter's max |gradient| over √(dtype max), as 0-dim tensors.
+
+        A gradient is usable when its ratio is < 1: finite *and* below √max, since a
+        finite gradient whose square overflows would put Inf into Adam's second
+        moment, freeze that parameter for good and make every later checkpoint refuse
+        to save (NaN-free by contract). NaN compares False, so it fails too.
+        """
+        ratios = []
+        for o in self.optimizers.values():
+            for grp in o.param_groups:
+                for p in grp["params"]:
+                    if p.grad is None or p.grad.numel() == 0:
+                        continue
+                    limit = math.sqrt(torch.finfo(p.grad.dtype).max)
+                    ratios.append(p.grad.detach().abs().amax().float() / limit)
+        return ratios
+
+    def step(self) -> dict[str, float]:
+        cfg, it = self.cfg, self.iteration
+        phase = self.current_phase()
+        set_lr(self.optimizers["means"], means_lr(cfg, it, self.radius))
+        vi = self._next_view()
+        view = self._targets[vi]
+        bg = background_color(cfg, self.device, self.gen)
+        gb, shade, res = forward_view(
+            self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
+            absgrad=cfg.densify.absgrad,
+        )  # fmt: skip
+        self.strategy.step_pre_backward(res)
+        target = view.composited(bg)
+        terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
+        if phase.scale_loss and cfg.loss.scale > 0:
+            # Eq. 7 in units of the scene radius: in world units the same capture in
+            # millimetres or kilometres would weigh flatness 1e6× differently.
+            terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales / self.radius)
+        depth, valid = geometry_depth(gb, phase.planar_depth)
+        if view.mask is not None:
+            valid = valid & (view.mask > 0.5)
+        if phase.single_view and cfg.loss.single_view > 0:
+            weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
+            terms["single_view"] = cfg.loss.single_view * single_view_loss(
+                gb.normal, depth, valid, view.camera, weight
+            )
+        nb = self.plan.neighbour_of(vi)
+        if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
+            nview = self._targets[nb]
+            gb_n, _ = render_gbuffer(
+                self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
+                antialiased=phase.antialiased,
+            )  # fmt: skip
+            d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
+            if nview.mask is not None:
+                v_n = v_n & (nview.mask > 0.5)
+            mv, _ = multi_view_loss(
+                depth, valid, view.camera, d_n, v_n, nview.camera,
+                max_error_px=cfg.loss.multiview_max_error_px,
+                n_pixels=cfg.loss.multiview_pixels, generator=self.gen,
+                error_weighting=cfg.loss.multiview_error_weighting,
+            )  # fmt: skip
+            terms["multi_view"] = cfg.loss.multi_view * mv
+        loss = sum(terms.values())
+        for o in self.optimizers.values():
+            o.zero_grad(set_to_none=True)
+        values = [t.detach().float() for t in (*terms.values(), loss)]
+        loss.backward()  # a non-finite loss gives non-finite gradients: caught below
+        # One host read-back per step for the loss values and the NaN guard together:
+        # on a GPU each read is a sync, and one per parameter stalled the queue 8 times.
+        host = torch.stack(values + self._gradient_ratios()).tolist()
+        losses, ratios = host[: len(values)], host[len(values) :]
+        ok = math.isfinite(losses[-1]) and all(r < 1.0 for r in ratios)
+        if not ok:
+            # The NaN guard: a non-finite loss or gradient never reaches the parameters.
+            self.skipped_steps += 1
+            for o in self.optimizers.values():
+                o.zero_grad(set_to_none=True)
+            self.iteration += 1
+            return {"skipped": 1.0}
+        if not phase.envmap and "envmap" in self.optimizers:
+            self.optimizers["envmap"].zero_grad(set_to_none=True)
+        for k, o in self.optimizers.items():
+            if k == "envmap" and not phase.envmap:
+                continue
+            o.step()
+        stats = self.strategy.step_post_backward(
+            self.gaussians, self.optimizers, res, it, view.camera.width, view.camera.height
+        )
+        self.iteration += 1
+        out = dict(zip(terms, losses[:-1], strict=True))
+        out["total"] = losses[-1]
+        out.update({f"densify_{k}": float(v) for k, v in stats.items() if v})
+        return out
+
+    # -- evaluation -------------------------------------------------------
+    @property
+    def model(self) -> TrainedModel:
+        """The live state as a trained model (shares the tensors; nothing is copied)."""
+        return TrainedModel(
+            gaussians=self.gaussians,
+            envmap=self.envmap,
+            config=self.cfg,
+            plan=self.plan,
+            iteration=self.iteration,
+            device=self.device,
+            backend=self.cfg.backend,
+            cameras=[v.camera for v in self.scene.train],
+            center=self.scene.center,
+            radius=self.radius,
+            train_seconds=self.train_seconds,
+            skipped_steps=self.skipped_steps,
+            path=self.checkpoint_path,
+        )
+
+    def progress_views(self) -> list[View]:
+        """The few held-out views scored while training (``eval.views`` of them)."""
+        pool = self.scene.test if self.scene.test else self.scene.train
+        n = min(self.cfg.eval.views, len(pool))
+        idx = np.linspace(0, len(pool) - 1, n).round().astype(int)
+        return [pool[i] for i in idx]
+
+    @torch.no_grad()
+    def evaluate(self) -> dict[str, float]:
+        model = self.model
+        bg = model.background
+        ps, ss = [], []
+        for v in self.progress_views():
+            final = model.render(v.camera, ("final",), background=bg).image("final")
+            target = self._to_device(v).composited(bg)
+            ps.append(psnr(final, target))
+            ss.append(ssim_srgb(final, target))
+        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+
+    # -- the loop ---------------------------------------------------------
+    def _eval_every(self) -> int:
+        return self.cfg.eval.every or max(1, self.cfg.iterations // 20)
+
+    def _ckpt_every(self) -> int:
+        return self.cfg.checkpoint_every or max(1, self.cfg.iterations // 5)
+
+    def _record(self, losses: dict[str, float]) -> dict[str, Any]:
+        row = {
+            "iteration": self.iteration,
+            "wall_time": round(self.train_seconds, 4),
+            "phase": self.current_phase(self.iteration - 1).name,
+            "n_gaussians": self.gaussians.num,
+            "loss": losses,
+            "skipped_steps": self.skipped_steps,
+            **self.evaluate(),
+        }
+        self.metrics.append(row)
+        self.last_eval = row
+        self.on_event({"type": "eval", **row})
+        return row
+
+    def _maybe_plan_view_dependence(self) -> None:
+        """At the end of the RGB-only phase, decide on the env map from evidence."""
+        if self.plan.envmap.pending and self.iteration >= self.marks.geometry_start:
+            evidence = probe_view_dependence(
+                self._targets, self.gaussians, self.cfg, self.radius, iteration=self.iteration
+            )
+            decide_envmap(self.plan, evidence, self.cfg)
+            if not self.plan.envmap.value:
+                self.envmap = None
+                self.optimizers.pop("envmap", None)
+            self.plan.save(self.out / "plan.json")
+            self.on_event({"type": "plan", "plan": self.plan.to_dict()})
+
+    def train(self) -> TrainResult:
+        cfg = self.cfg
+        total = cfg.iterations
+        bar = None
+        if self.progress:
+            from tqdm import tqdm
+
+            bar = tqdm(
+                total=total, initial=self.iteration, desc="train", unit="it", dynamic_ncols=True
+            )
+        boundaries = set(self.marks.boundaries())
+        if self.iteration == 0:
+            self._record({})
+        status = "succeeded"
+        while self.iteration < total:
+            if self.should_stop():
+                status = "cancelled"
+                break
+            self._maybe_plan_view_dependence()
+            t0 = time.perf_counter()
+            losses = self.step()
+            self.train_seconds += time.perf_counter() - t0
+            self.last_losses = losses
+            it = self.iteration
+            if it % self._eval_every() == 0 or it == total or it in boundaries:
+                self._record(losses)
+            if it % self._ckpt_every() == 0 or it in boundaries:
+                self.save()
+            rate = it / self.train_seconds if self.train_seconds > 0 else 0.0
+            eta = (total - it) / rate if rate > 0 else math.nan
+            self.on_event(
+                {
+                    "type": "progress",
+                    "iteration": it,
+                    "total": total,
+                    "phase": self.current_phase(it - 1).name,
+                    "n_gaussians": self.gaussians.num,
+                    "loss": losses.get("total"),
+                    "elapsed": self.train_seconds,
+                    "eta": eta,
+                    "psnr": self.last_eval.get("psnr"),
+                }
+            )
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(
+                    phase=self.current_phase(it - 1).name,
+                    n=self.gaussians.num,
+                    psnr=f"{self.last_eval.get('psnr', float('nan')):.2f}",
+                )
+        if bar is not None:
+            bar.close()
+        self.save()
+        return TrainResult(status, self.iteration, self.train_seconds, dict(self.last_eval))
