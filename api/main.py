@@ -17,7 +17,7 @@ from sqlalchemy import update
 import viewer_web
 from api.auth import PrincipalCache
 from api.problems import PROBLEM_JSON, install_handlers
-from api.routers import artifacts, jobs, keys, scenes, viewer, workers
+from api.routers import artifacts, jobs, keys, meshes, scenes, viewer, workers
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Scene, SceneState
@@ -118,7 +118,7 @@ def create_app(
     app.state.principals = PrincipalCache(settings.auth_cache_s)
     install_handlers(app)
     app.add_middleware(ServerTimingMiddleware)
-    for module in (keys, scenes, jobs, artifacts, workers, viewer):
+    for module in (keys, scenes, jobs, meshes, artifacts, workers, viewer):
         app.include_router(module.router, prefix="/v1")
     viewer_web.mount(app, viewer.make_service(app))
     app.openapi = lambda: _tidy_openapi(app)  # type: ignore[method-assign]

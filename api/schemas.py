@@ -12,6 +12,7 @@ from core.config import TrainConfig
 
 T = TypeVar("T")
 JobStateName = Literal["queued", "running", "succeeded", "failed", "cancelled"]
+JobKindName = Literal["train", "mesh"]
 SceneStateName = Literal["open", "validating", "ready"]
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 ._\-]*$"
 
@@ -125,8 +126,48 @@ class JobCreate(BaseModel):
     )
 
 
+class MeshCreate(BaseModel):
+    """Parameters of a mesh extraction from a finished training job's checkpoint."""
+
+    model_config = ConfigDict(extra="forbid")
+    resolution: int = Field(
+        256,
+        ge=16,
+        description="voxels along the longest side of the surface's box (the grid is fitted "
+        "to the surface); at most GLINT_MESH_MAX_RESOLUTION",
+    )
+    voxel: float | None = Field(
+        None,
+        gt=0,
+        allow_inf_nan=False,
+        description="voxel size in scene units; replaces resolution",
+    )
+    trunc: float | None = Field(
+        None, gt=0, allow_inf_nan=False, description="truncation distance; default 4 voxels"
+    )
+    color: Literal["base", "radiance"] = Field(
+        "base",
+        description="vertex colour: 'base', the material without reflections (Eq. 9's base "
+        "colour), or 'radiance', the rendered colour with the environment baked in",
+    )
+    keep_fraction: float = Field(
+        0.1,
+        ge=0,
+        le=1,
+        description="keep connected components with at least this fraction of the largest "
+        "one's faces (0 keeps every component)",
+    )
+    simplify: int | None = Field(
+        None, ge=4, le=100_000_000, description="quadric decimation to about this many faces"
+    )
+
+
 class JobOut(BaseModel):
     id: str
+    kind: JobKindName = Field(
+        description="'train' (a training job) or 'mesh' (a mesh extracted from one)"
+    )
+    parent_id: str | None = Field(description="for a mesh job: the training job it meshes")
     scene_id: str
     state: JobStateName
     cancel_requested: bool
@@ -144,6 +185,10 @@ class JobOut(BaseModel):
     version: int = Field(description="bumped on every change")
     config: dict[str, Any]
     plan: dict[str, Any] | None = Field(description="what parts of the method the scene needs")
+    stage: dict[str, Any] | None = Field(
+        description="the step after training that runs now, e.g. {'name': 'mesh', 'step': "
+        "'integrate', 'done': 3, 'total': 24}"
+    )
     created_at: datetime
     updated_at: datetime
     started_at: datetime | None

@@ -52,6 +52,8 @@ def job_progress(job: Job) -> float:
 def job_out(job: Job) -> JobOut:
     return JobOut(
         id=job.id,
+        kind=job.kind,  # type: ignore[arg-type]
+        parent_id=job.parent_id,
         scene_id=job.scene_id,
         state=job.state,  # type: ignore[arg-type]
         cancel_requested=job.cancel_requested,
@@ -69,6 +71,7 @@ def job_out(job: Job) -> JobOut:
         version=job.version,
         config=job.config,
         plan=job.plan,
+        stage=job.stage,
         created_at=job.created_at,
         updated_at=job.updated_at,
         started_at=job.started_at,

@@ -241,24 +241,39 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
         args.run, args.scene, device=args.device, backend=args.backend, notes=notes
     )
     _print_notes(notes)
-    _, info = mesh_model(
-        model,
-        scene.train,
-        args.run,
-        voxel=args.voxel,
-        trunc=args.trunc,
-        resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
-        carve=not args.no_carve,
-        keep_fraction=args.keep_fraction,
-    )
+    from tqdm import tqdm
+
+    n = len(scene.train)
+    bar = tqdm(total=3 * n + 2, unit="step", desc="mesh", disable=args.quiet)
+
+    def progress(step: str, done: int, total: int) -> None:
+        bar.set_postfix_str(step)
+        bar.update(1)
+
+    try:
+        _, info = mesh_model(
+            model,
+            scene.train,
+            args.run,
+            voxel=args.voxel,
+            trunc=args.trunc,
+            resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
+            carve=not args.no_carve,
+            keep_fraction=args.keep_fraction,
+            color=args.color,
+            simplify=args.simplify,
+            progress=progress,
+        )
+    finally:
+        bar.close()
     fu = info["fusion"]
     print(
         f"mesh of iteration {info['iteration']}: {info['vertices']} vertices, "
         f"{info['faces']} faces, {info['components']['kept']}/"
         f"{info['components']['components']} components kept, voxel {fu['voxel']:.4g}, "
-        f"truncation {fu['trunc']:.4g}"
+        f"truncation {fu['trunc']:.4g}, vertex colour: {info['color']}"
     )
-    print(f"wrote mesh.ply, mesh.obj, mesh.glb and mesh.json in {args.run}")
+    print(f"wrote mesh.ply, mesh.obj, mesh.glb, mesh.json and mesh_preview.png in {args.run}")
     return 0
 
 
@@ -374,6 +389,17 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
         default=0.1,
         help="keep components with at least this fraction of the largest one's faces",
     )
+    p.add_argument(
+        "--color",
+        choices=("base", "radiance"),
+        default="base",
+        help="vertex colour: base (the material without reflections; default) or radiance "
+        "(the rendered colour, environment baked in)",
+    )
+    p.add_argument(
+        "--simplify", type=int, default=None, help="quadric decimation to about this many faces"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--threads", **threads)
     _add_reopen_args(p)
     p.set_defaults(func=_cmd_mesh)

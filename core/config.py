@@ -120,6 +120,22 @@ class Evaluation(_Strict):
     views: int = Field(4, ge=1, description="held-out views evaluated at each cadence point")
 
 
+class Outputs(_Strict):
+    mesh: bool = Field(
+        True,
+        description="end the run with a coloured TSDF mesh (mesh.ply/.glb/.obj); the scene "
+        "plan records it and plan_overrides.mesh replaces it",
+    )
+    mesh_color: Literal["base", "radiance"] = Field(
+        "base",
+        description="vertex colour: 'base' (the material without reflections) or "
+        "'radiance' (the rendered colour, environment baked in)",
+    )
+    mesh_resolution: int = Field(
+        256, ge=16, le=2048, description="voxels along the longest side of the surface's box"
+    )
+
+
 class TrainConfig(_Strict):
     """The whole training configuration."""
 
@@ -149,6 +165,7 @@ class TrainConfig(_Strict):
     densify: Densification = Densification()
     ablation: Ablation = Ablation()
     eval: Evaluation = Evaluation()
+    outputs: Outputs = Outputs()
     checkpoint_every: int = Field(0, ge=0, description="iterations; 0 = ~5 per run + phase ends")
     plan_overrides: dict[str, Any] = Field(default_factory=dict)
 

@@ -38,7 +38,7 @@ from api.deps import (
 )
 from api.problems import ApiError, not_found, responses
 from api.routers.scenes import owned_scene
-from api.schemas import JobCreate, JobOut, JobStateName, Page
+from api.schemas import JobCreate, JobKindName, JobOut, JobStateName, Page
 from api.service.db import Database
 from api.service.models import Job, JobState, SceneState, new_id
 from api.service.queue import JobQueue
@@ -70,7 +70,7 @@ def _etag(job: Job) -> str:
     return f'W/"{job.id}-{job.version}"'
 
 
-def _enqueue(queue: JobQueue, job_id: str) -> None:
+def enqueue(queue: JobQueue, job_id: str) -> None:
     try:
         queue.enqueue(job_id)
     except Exception as exc:
@@ -111,7 +111,7 @@ def create_job(
     )
     session.add(job)
     session.commit()  # the row exists before any runner can be handed its id
-    _enqueue(queue, job.id)
+    enqueue(queue, job.id)
     return job_out(job)
 
 
@@ -122,6 +122,9 @@ def list_jobs(
     settings: SettingsDep,
     state: Annotated[list[JobStateName] | None, Query(description="any of these states")] = None,
     scene_id: Annotated[str | None, Query(max_length=40)] = None,
+    kind: Annotated[
+        JobKindName | None, Query(description="only training jobs, or only mesh jobs")
+    ] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 50,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> Page[JobOut]:
@@ -131,6 +134,8 @@ def list_jobs(
         where.append(Job.state.in_(state))
     if scene_id:
         where.append(Job.scene_id == scene_id)
+    if kind:
+        where.append(Job.kind == kind)
     total = session.scalar(select(func.count()).select_from(Job).where(*where)) or 0
     rows = session.scalars(
         select(Job)
@@ -205,7 +210,7 @@ def resume_job(
     job.finished_at, job.updated_at = None, _now()
     job.version += 1
     session.commit()
-    _enqueue(queue, job.id)
+    enqueue(queue, job.id)
     return job_out(job)
 
 
@@ -222,8 +227,18 @@ def delete_job(
     job = owned_job(session, principal, job_id, lock=True)
     if job.state not in JobState.TERMINAL:
         raise ApiError(409, "job-active", f"job '{job_id}' is {job.state}; cancel it first")
-    session.delete(job)
+    children = list(session.scalars(select(Job).where(Job.parent_id == job.id)))
+    active = [c.id for c in children if c.state not in JobState.TERMINAL]
+    if active:
+        raise ApiError(
+            409,
+            "job-active",
+            f"job '{job_id}' has mesh jobs still running ({', '.join(active)}); cancel them first",
+        )
+    session.delete(job)  # its mesh jobs go with it (foreign key cascade)
     session.commit()
+    for c in children:
+        store.delete(job_key(c.id))
     store.delete(job_key(job_id))
     return Response(status_code=204)
 

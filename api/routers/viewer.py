@@ -32,6 +32,7 @@ STATUS_FIELDS = (
     "id",
     "state",
     "phase",
+    "stage",
     "iteration",
     "total_iterations",
     "progress",

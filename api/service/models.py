@@ -123,6 +123,12 @@ class JobState:
     ALL = (QUEUED, RUNNING, SUCCEEDED, FAILED, CANCELLED)
 
 
+class JobKind:
+    TRAIN = "train"  # trains a scene (and, unless its config says otherwise, meshes it)
+    MESH = "mesh"  # extracts a mesh from a finished training job's checkpoint
+    ALL = (TRAIN, MESH)
+
+
 class Job(Base):
     __tablename__ = "jobs"
     __table_args__ = (Index("ix_jobs_owner_created", "owner", "created_at"),)
@@ -130,11 +136,19 @@ class Job(Base):
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     owner: Mapped[str] = mapped_column(String(100), index=True)
     scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="RESTRICT"), index=True)
+    kind: Mapped[str] = mapped_column(String(16), default=JobKind.TRAIN, server_default="train")
+    parent_id: Mapped[str | None] = mapped_column(
+        ForeignKey("jobs.id", ondelete="CASCADE", name="fk_jobs_parent_id_jobs"),
+        default=None,
+        index=True,
+    )
     state: Mapped[str] = mapped_column(String(16), default=JobState.QUEUED, index=True)
     config: Mapped[dict[str, Any]] = mapped_column()
     cancel_requested: Mapped[bool] = mapped_column(Boolean, default=False)
     # progress, written by the runner
     phase: Mapped[str | None] = mapped_column(String(32), default=None)
+    # a post-training step (e.g. {"name": "mesh", "step": "integrate", "done": 3, "total": 24})
+    stage: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     iteration: Mapped[int] = mapped_column(Integer, default=0)
     total_iterations: Mapped[int] = mapped_column(Integer)
     n_gaussians: Mapped[int | None] = mapped_column(Integer, default=None)

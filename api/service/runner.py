@@ -40,7 +40,7 @@ from typing import Any
 from sqlalchemy import Update, delete, func, or_, select, update
 
 from api.service.db import Database, database_for
-from api.service.models import Artifact, Job, JobState
+from api.service.models import Artifact, Job, JobKind, JobState
 from api.service.settings import Settings
 from api.service.store import LocalStore, job_run_key, scene_files_key
 
@@ -57,6 +57,7 @@ CONTENT_TYPES = {
     ".jpg": "image/jpeg",
     ".txt": "text/plain; charset=utf-8",
     ".obj": "model/obj",
+    ".glb": "model/gltf-binary",
 }
 
 
@@ -143,6 +144,7 @@ class _JobReporter:
         self.last_poll = 0.0
         self.cancelled = False
         self.lost = False
+        self.own_progress = False  # stage events drive iteration/total (mesh jobs)
         self.lock = threading.Lock()
 
     def _fenced(self) -> Update:
@@ -170,6 +172,17 @@ class _JobReporter:
             self.pending["metrics"] = json_safe(m)
         elif kind == "plan":
             self.pending["plan"] = json_safe(event.get("plan"))
+        elif kind == "stage":
+            stage = {k: event[k] for k in ("name", "step", "done", "total") if k in event}
+            self.pending["stage"] = json_safe(stage)
+            if self.own_progress:  # a mesh job: the stage is its progress
+                self.pending.update(
+                    phase=str(event.get("name")),
+                    iteration=int(event.get("overall_done", 0)),
+                    total_iterations=int(event.get("overall_total", 0)),
+                )
+            if time.monotonic() - self.last_write >= self.interval:
+                self.flush()
         elif kind == "resumed":
             self.pending["iteration"] = int(event["iteration"])
             log.info("job %s: resumed from iteration %d", self.job_id, event["iteration"])
@@ -259,8 +272,10 @@ def collect_artifacts(run_dir: Path) -> list[dict[str, Any]]:
     if not run_dir.is_dir():
         return out
     for p in sorted(run_dir.rglob("*")):
-        if p.is_file() and not p.is_symlink() and not p.name.endswith(".tmp"):
-            name = p.relative_to(run_dir).as_posix()
+        rel = p.relative_to(run_dir)
+        staging = any(part.endswith(".tmp") for part in rel.parts)  # unfinished writes
+        if p.is_file() and not p.is_symlink() and not staging:
+            name = rel.as_posix()
             out.append(
                 {
                     "name": name,
@@ -340,6 +355,59 @@ def placed_config(config: dict[str, Any], device: str | None) -> tuple[dict[str,
     return config, f"{why}; this worker trains with 'auto' on {device}"
 
 
+def _run_training(
+    config: dict[str, Any], scene_dir: Path, run_dir: Path, reporter: _JobReporter
+) -> str:
+    """Train (or resume) into ``run_dir``: its export and mesh phase included."""
+    from core.config import config_from_dict
+    from core.training.run import train_scene
+
+    cfg = config_from_dict(config, source="job config")
+    result, _summary = train_scene(
+        scene_dir,
+        run_dir,
+        cfg,
+        on_event=reporter.on_event,
+        should_stop=reporter.should_stop,
+        resume=True,
+    )
+    return result.status
+
+
+def _run_mesh(
+    config: dict[str, Any],
+    parent_run: Path,
+    scene_dir: Path,
+    out: Path,
+    reporter: _JobReporter,
+    device: str | None,
+    max_resolution: int,
+) -> str:
+    """Extract a mesh from the parent job's checkpoint into ``out`` (all files or none)."""
+    from core.meshing.mesh import MeshCancelledError, mesh_run
+
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        mesh_run(
+            parent_run,
+            out,
+            scene_dir,
+            device=device,
+            resolution=int(config.get("resolution", 256)),
+            voxel=config.get("voxel"),
+            trunc=config.get("trunc"),
+            color=str(config.get("color", "base")),
+            keep_fraction=float(config.get("keep_fraction", 0.1)),
+            simplify=config.get("simplify"),
+            max_resolution=max_resolution,
+            on_event=reporter.on_event,
+            should_stop=reporter.should_stop,
+        )
+    except MeshCancelledError:
+        return "cancelled"
+    return "succeeded"
+
+
 def run_job(
     job_id: str,
     settings: Settings,
@@ -369,28 +437,32 @@ def run_job(
         job = s.get(Job, job_id)
         assert job is not None
         config, scene_id = dict(job.config), job.scene_id
-    config, note = placed_config(config, device)
-    if note:
-        log.warning("job %s: %s", job_id, note)
+        kind, parent_id = job.kind, job.parent_id
+    if kind == JobKind.TRAIN:
+        config, note = placed_config(config, device)
+        if note:
+            log.warning("job %s: %s", job_id, note)
     reporter = _JobReporter(database, job_id, lease, settings, stop)
+    reporter.own_progress = kind == JobKind.MESH
     heartbeat = _Heartbeat(reporter, settings.heartbeat_s)
     heartbeat.start()
     run_dir = store.path(job_run_key(job_id))
     state, error = JobState.FAILED, None
     try:
-        from core.config import config_from_dict
-        from core.training.run import train_scene
-
-        cfg = config_from_dict(config, source="job config")
-        result, _summary = train_scene(
-            store.path(scene_files_key(scene_id)),
-            run_dir,
-            cfg,
-            on_event=reporter.on_event,
-            should_stop=reporter.should_stop,
-            resume=True,
-        )
-        state = JobState.SUCCEEDED if result.status == "succeeded" else JobState.CANCELLED
+        if kind == JobKind.MESH:
+            assert parent_id is not None
+            status = _run_mesh(
+                config,
+                store.path(job_run_key(parent_id)),
+                store.path(scene_files_key(scene_id)),
+                run_dir,
+                reporter,
+                device,
+                settings.mesh_max_resolution,
+            )
+        else:
+            status = _run_training(config, store.path(scene_files_key(scene_id)), run_dir, reporter)
+        state = JobState.SUCCEEDED if status == "succeeded" else JobState.CANCELLED
     except Exception as exc:
         log.exception("job %s failed", job_id)
         error = _public_error(exc, store.root)

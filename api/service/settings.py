@@ -114,6 +114,14 @@ class Settings(BaseSettings):
         120.0, gt=0, description="a running job without heartbeat this long may be reclaimed"
     )
 
+    mesh_max_resolution: int = Field(
+        512,
+        ge=16,
+        le=2048,
+        description="longest side of a mesh extraction's voxel grid a job may ask for; "
+        "memory grows with the narrow band around the surface (see docs/benchmarks.md)",
+    )
+
     # --- workers (glint worker) ------------------------------------------------------
     worker_device: str = Field(
         "cpu", description="torch device a worker trains on (cpu, cuda:N); set by --device"

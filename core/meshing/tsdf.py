@@ -30,7 +30,7 @@ into a truncated signed distance field, and take its zero level set.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -116,19 +116,39 @@ class FusionParams:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
+def frame_points(f: DepthFrame) -> Tensor:
+    """World points (M, 3) float64 of every valid pixel of one frame."""
+    if not bool(f.valid.any()):
+        return torch.zeros(0, 3, dtype=torch.float64)
+    uv = f.camera.pixel_centers(torch.float64, f.depth.device)[f.valid]
+    return f.camera.backproject(uv, f.depth[f.valid].to(torch.float64))
+
+
 def backproject_frames(frames: Sequence[DepthFrame]) -> Tensor:
     """World points (M, 3) float64 of every valid pixel of every frame."""
-    pts = []
-    for f in frames:
-        if not bool(f.valid.any()):
-            continue
-        uv = f.camera.pixel_centers(torch.float64, f.depth.device)[f.valid]
-        pts.append(f.camera.backproject(uv, f.depth[f.valid].to(torch.float64)))
+    pts = [frame_points(f) for f in frames]
     return torch.cat(pts) if pts else torch.zeros(0, 3, dtype=torch.float64)
 
 
+def sample_points(frames: Iterable[DepthFrame], budget: int, seed: int = 0) -> Tensor:
+    """At most about ``budget`` surface points (float64, CPU) drawn evenly from the frames,
+    one frame at a time: what the bounds need, without holding the frames."""
+    gen = torch.Generator().manual_seed(seed)
+    kept: list[Tensor] = []
+    seen = 0
+    for f in frames:
+        pts = frame_points(f).cpu()
+        seen += len(pts)
+        kept.append(pts)
+        total = sum(len(k) for k in kept)
+        if total > budget:  # thin what is kept to the budget, in proportion
+            keep = budget / total
+            kept = [k[torch.rand(len(k), generator=gen) < keep] for k in kept]
+    return torch.cat(kept) if kept else torch.zeros(0, 3, dtype=torch.float64)
+
+
 def fusion_bounds(
-    frames: Sequence[DepthFrame],
+    frames: Sequence[DepthFrame] | Tensor,
     center: Tensor | Sequence[float] | None = None,
     radius: float | None = None,
     *,
@@ -140,9 +160,10 @@ def fusion_bounds(
     Robust per-axis percentiles of the back-projected surface pixels (floaters far off
     do not stretch the box), grown by ``margin`` × the box's largest side on every side
     (percentiles clip the extreme tips), and clipped to the scene's bounding sphere
-    (``center``, ``radius``) when given.
+    (``center``, ``radius``) when given. ``frames`` may also be the surface points.
     """
-    pts = backproject_frames(frames).cpu().numpy()
+    pts = frames if isinstance(frames, Tensor) else backproject_frames(frames)
+    pts = pts.cpu().numpy()
     if len(pts) == 0:
         if center is None or radius is None:
             raise ValueError("no valid depth in any frame and no scene bounds to fall back on")
@@ -179,11 +200,14 @@ def make_grid(
     return VoxelGrid((float(lo[0]), float(lo[1]), float(lo[2])), float(voxel), shape)
 
 
-def narrow_band(frames: Sequence[DepthFrame], grid: VoxelGrid, trunc: float) -> Tensor:
-    """Flat indices (M,) of the voxels within ``trunc`` of a back-projected surface pixel."""
-    pts = backproject_frames(frames)
+def narrow_band(frames: Iterable[DepthFrame], grid: VoxelGrid, trunc: float) -> Tensor:
+    """Flat indices (M,) of the voxels within ``trunc`` of a back-projected surface pixel
+    (frames are read one at a time)."""
     occ = torch.zeros(grid.shape, dtype=torch.float32)
-    if len(pts):
+    for f in frames:
+        pts = frame_points(f)
+        if not len(pts):
+            continue
         ijk, inside = grid.index_of(pts.cpu())
         ijk = ijk[inside]
         occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]] = 1.0
@@ -307,6 +331,78 @@ class TSDFVolume:
         return (s[:, :3] / s[:, 3:].clamp_min(1e-6)).clamp(0, 1).numpy()
 
 
+FrameSource = Callable[[int], DepthFrame]
+ProgressFn = Callable[[str, int, int], None]
+POINT_BUDGET = 4_000_000  # surface points kept for the bounds (≈ 100 MB)
+
+
+def fuse_frames(
+    n_frames: int,
+    frame_at: FrameSource,
+    *,
+    bounds_frame_at: FrameSource | None = None,
+    center: Tensor | Sequence[float] | None = None,
+    radius: float | None = None,
+    voxel: float | None = None,
+    trunc: float | None = None,
+    resolution: int = DEFAULT_RESOLUTION,
+    carve: bool = True,
+    device: torch.device | str = "cpu",
+    progress: ProgressFn | None = None,
+    max_resolution: int | None = None,
+) -> tuple[TSDFVolume, FusionParams]:
+    """Fuse ``n_frames`` views into a TSDF, holding one view's frame at a time.
+
+    ``frame_at(i)`` makes frame i (a render, typically); it is called twice per view:
+    once to mark the narrow band, once to integrate. ``bounds_frame_at`` (e.g. a
+    quarter-resolution render) gives the points the grid is fitted to; default
+    ``frame_at``. Memory: the band's voxels, one frame, and at most
+    :data:`POINT_BUDGET` points. ``progress(stage, done, total)`` is called after
+    each view of each pass; ``max_resolution`` refuses a grid with a longer side.
+    """
+    if n_frames <= 0:
+        raise ValueError("no frames to fuse")
+    report = progress or (lambda stage, done, total: None)
+    bounds_at = bounds_frame_at or frame_at
+
+    def bounds_frames() -> Iterator[DepthFrame]:
+        for i in range(n_frames):
+            yield bounds_at(i)
+            report("bounds", i + 1, n_frames)
+
+    pts = sample_points(bounds_frames(), POINT_BUDGET)
+    lo, hi = fusion_bounds(pts, center, radius)
+    grid = make_grid(lo, hi, voxel, resolution)
+    if max_resolution is not None and max(grid.shape) > max_resolution + 1:
+        raise ValueError(
+            f"the grid would be {grid.shape[0]}×{grid.shape[1]}×{grid.shape[2]} voxels, "
+            f"beyond the limit of {max_resolution} per side: use a larger voxel"
+        )
+    trunc = float(trunc) if trunc is not None else DEFAULT_TRUNC_VOXELS * grid.voxel
+
+    def band_frames() -> Iterator[DepthFrame]:
+        for i in range(n_frames):
+            yield frame_at(i)
+            report("band", i + 1, n_frames)
+
+    band = narrow_band(band_frames(), grid, trunc)
+    vol = TSDFVolume(grid, trunc, band, device=device)
+    for i in range(n_frames):
+        vol.integrate(frame_at(i), carve=carve)
+        report("integrate", i + 1, n_frames)
+    params = FusionParams(
+        lo=[float(x) for x in lo],
+        hi=[float(x) for x in hi],
+        voxel=grid.voxel,
+        trunc=trunc,
+        shape=list(grid.shape),
+        band_voxels=int(band.numel()),
+        frames=n_frames,
+        carve=carve,
+    )
+    return vol, params
+
+
 def fuse_depth_frames(
     frames: Sequence[DepthFrame],
     *,
@@ -318,27 +414,13 @@ def fuse_depth_frames(
     carve: bool = True,
     device: torch.device | str = "cpu",
 ) -> tuple[TSDFVolume, FusionParams]:
-    """Fuse depth frames into a TSDF over a grid fitted to the observed surface."""
+    """Fuse depth frames already in memory (see :func:`fuse_frames`)."""
     if not frames:
         raise ValueError("no frames to fuse")
-    lo, hi = fusion_bounds(frames, center, radius)
-    grid = make_grid(lo, hi, voxel, resolution)
-    trunc = float(trunc) if trunc is not None else DEFAULT_TRUNC_VOXELS * grid.voxel
-    band = narrow_band(frames, grid, trunc)
-    vol = TSDFVolume(grid, trunc, band, device=device)
-    for f in frames:
-        vol.integrate(f, carve=carve)
-    params = FusionParams(
-        lo=[float(x) for x in lo],
-        hi=[float(x) for x in hi],
-        voxel=grid.voxel,
-        trunc=trunc,
-        shape=list(grid.shape),
-        band_voxels=int(band.numel()),
-        frames=len(frames),
-        carve=carve,
-    )
-    return vol, params
+    return fuse_frames(
+        len(frames), frames.__getitem__, center=center, radius=radius, voxel=voxel,
+        trunc=trunc, resolution=resolution, carve=carve, device=device,
+    )  # fmt: skip
 
 
 def _real_crossings(verts: np.ndarray, observed: np.ndarray) -> np.ndarray:

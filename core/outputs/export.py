@@ -47,11 +47,13 @@ def export_run(
     render_views: Sequence[View],
     *,
     geometry: dict[str, Any] | None = None,
+    sections: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Write every artifact of the run into ``out``; returns a summary.
 
     ``render_views``: the views whose channels are written to ``renders/``;
-    ``geometry``: the error against ground-truth maps, when the caller measured it.
+    ``geometry``: the error against ground-truth maps, when the caller measured it;
+    ``sections``: more report sections (the mesh's).
     """
     out = Path(out)
     save_ply(model.gaussians.detach(), out / "point_cloud.ply")
@@ -68,8 +70,13 @@ def export_run(
     files["renders"] = sorted(p.name for p in render_dir.glob("*.png"))
     if geometry is not None:
         (out / "geometry.json").write_text(json.dumps(geometry, indent=2))
-    write_report(out, export_sections(model, geometry))
+    write_report(out, [*export_sections(model, geometry), *sections])
     files["report"] = "report.md"
-    summary = {"files": files, "geometry": geometry, "iteration": model.iteration}
+    summary: dict[str, Any] = {"files": files, "geometry": geometry, "iteration": model.iteration}
+    if model.center is not None and model.radius is not None:
+        summary["scene_box"] = {
+            "center": [float(v) for v in model.center],
+            "radius": float(model.radius),
+        }
     (out / "outputs.json").write_text(json.dumps(summary, indent=2, default=str))
     return summary

@@ -188,7 +188,10 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     else:
         env = Decision(False, "switched off by the ablation config (SH colour only)")
         sh = Decision(cfg.sh_degree, "from the config")
-    mesh = Decision(False, "not asked for (plan_overrides.mesh or `glint mesh`)")
+    if cfg.outputs.mesh:
+        mesh = Decision(True, "outputs.mesh is on (the default): the run ends with a mesh")
+    else:
+        mesh = Decision(False, "switched off by outputs.mesh (`glint mesh` makes one later)")
     plan = ScenePlan(
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
             [float(c.intrinsics.fx) for c in cams], cfg)

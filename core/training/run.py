@@ -9,6 +9,7 @@ from typing import Any
 
 from core.config import TrainConfig
 from core.evaluation.geometry import geometry_errors
+from core.meshing.mesh import MeshCancelledError, mesh_model, mesh_section, stage_progress
 from core.model.run_folder import record_scene
 from core.outputs.export import export_run
 from core.scene.formats import load_scene
@@ -44,17 +45,42 @@ def train_scene(
     result = trainer.train()
     summary = None
     if export and result.status == "succeeded":
-        summary = export_trained(trainer)
+        try:
+            summary = export_trained(trainer, on_event=on_event, should_stop=should_stop)
+        except MeshCancelledError:  # stopped while meshing: resuming redoes export and mesh
+            return TrainResult("cancelled", result.iteration, result.train_seconds), None
         if on_event:
             on_event({"type": "exported", **summary})
     return result, summary
 
 
-def export_trained(trainer: Trainer) -> dict[str, Any]:
+def export_trained(
+    trainer: Trainer,
+    *,
+    on_event: Callable[[dict[str, Any]], None] | None = None,
+    should_stop: Callable[[], bool] | None = None,
+) -> dict[str, Any]:
     """Export a trainer's model into its run folder, with its geometry error when the
-    scene ships ground-truth maps."""
+    scene ships ground-truth maps and its mesh when the plan asks for one."""
     model = trainer.model
     scene = trainer.scene
+    cfg = trainer.cfg
     geo = geometry_errors(model, scene.test or scene.train, scene.root)
+    sections = []
+    mesh_info = None
+    if trainer.plan.mesh.value:
+        _, mesh_info = mesh_model(
+            model,
+            scene.train,
+            trainer.out,
+            resolution=cfg.outputs.mesh_resolution,
+            color=cfg.outputs.mesh_color,
+            progress=stage_progress(on_event, len(scene.train)),
+            should_stop=should_stop,
+        )
+        sections.append(mesh_section(mesh_info))
     views = trainer.progress_views()[:RENDERED_VIEWS]
-    return export_run(model, trainer.out, views, geometry=geo)
+    summary = export_run(model, trainer.out, views, geometry=geo, sections=sections)
+    if mesh_info is not None:
+        summary["mesh"] = {k: mesh_info[k] for k in ("vertices", "faces", "color", "files")}
+    return summary

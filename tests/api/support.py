@@ -27,6 +27,7 @@ TINY_CONFIG: dict[str, Any] = {
     "eval": {"every": 10, "views": 1},
     "checkpoint_every": 10,
     "densify": {"enabled": False},  # short runs would densify every step
+    "outputs": {"mesh_resolution": 48},  # the mesh phase, at a size fit for 24² views
 }
 
 

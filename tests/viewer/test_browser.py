@@ -112,3 +112,24 @@ def test_reset_returns_to_the_home_view(page) -> None:  # type: ignore[no-untype
     page.click("#reset")
     wait_still_frame(page, head["seq"])
     assert page.evaluate("window.glintViewer.target") == home_eye
+
+
+def test_mesh_panel_lists_extracts_and_downloads(page, trained_job: TrainedJob) -> None:  # type: ignore[no-untyped-def]
+    """The training job's own mesh is listed; a re-extraction started from the panel
+    runs to the end and its files download (through fetch, the key in a header)."""
+    own = page.locator(f"#meshes li[data-job='{trained_job.job_id}']")
+    own.wait_for(timeout=30_000)
+    assert "from training" in own.inner_text()
+    page.select_option("#mesh-res", "64")
+    page.select_option("#mesh-color", "radiance")
+    page.click("#mesh-start")
+    others = f"#meshes li[data-state='succeeded']:not([data-job='{trained_job.job_id}'])"
+    done = page.locator(others)
+    done.first.wait_for(timeout=90_000)
+    assert "64³ radiance" in done.first.inner_text()
+    with page.expect_download(timeout=30_000) as dl:
+        done.first.locator("a[data-file='mesh.glb']").click()
+    path = dl.value.path()
+    assert path is not None and Path(path).read_bytes()[:4] == b"glTF"
+    assert dl.value.suggested_filename.endswith("_mesh.glb")
+    assert page.locator("#mesh-note").inner_text() == ""

@@ -128,6 +128,31 @@ def test_worker_trains_to_success_and_reports_itself(
     wait_for(lambda: client.get("/v1/workers").json()[0]["busy"] is False, timeout=10)
 
 
+def test_worker_meshes_jobs_and_reextracts_on_request(
+    server: LiveServer, workers: Workers, client: httpx.Client, scene_id: str
+) -> None:
+    """The job's mesh phase and a re-extraction both run on the Celery worker."""
+    import io
+
+    import trimesh
+
+    workers.ensure("a")
+    job_id = submit(client, scene_id, iterations=8)
+    done = wait_state(client, job_id)
+    assert done["state"] == "succeeded", done["error"]
+    names = {x["name"] for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    assert {"mesh.ply", "mesh.glb", "mesh.obj", "mesh_preview.png"} <= names
+    r = client.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 32, "color": "radiance"})
+    assert r.status_code == 201, r.text
+    mesh_job = wait_state(client, r.json()["id"])
+    assert mesh_job["state"] == "succeeded", mesh_job["error"]
+    assert mesh_job["kind"] == "mesh" and mesh_job["progress"] == 1.0
+    assert f"job {mesh_job['id']}: succeeded" in workers.logs()  # the worker ran it
+    glb = client.get(f"/v1/jobs/{mesh_job['id']}/artifacts/mesh.glb")
+    mesh = trimesh.load(io.BytesIO(glb.content), file_type="glb", force="mesh")
+    assert len(mesh.faces) > 20 and mesh.visual.kind == "vertex"
+
+
 def test_duplicate_messages_train_once(
     server: LiveServer, workers: Workers, client: httpx.Client, scene_id: str
 ) -> None:

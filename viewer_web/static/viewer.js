@@ -261,7 +261,12 @@
     const pill = $("job-state");
     pill.textContent = job.state;
     pill.className = `pill ${job.state}`;
-    $("job-phase").textContent = job.phase ? `phase: ${job.phase}` : "";
+    const stage = job.stage && job.state === "running" ? ` · ${job.stage.name}: ${job.stage.step}` : "";
+    $("job-phase").textContent = job.phase ? `phase: ${job.phase}${stage}` : "";
+    if (job.state === "succeeded" && state.lastJobState !== "succeeded" && sessionStorage.getItem(KEY_STORE)) {
+      setTimeout(() => state.refreshMeshes && state.refreshMeshes(), 0);
+    }
+    state.lastJobState = job.state;
     $("job-progress").style.width = `${Math.round((job.progress || 0) * 100)}%`;
     $("job-iter").textContent = `${job.iteration} / ${job.total_iterations}`;
     const psnr = job.metrics && job.metrics.psnr;
@@ -354,6 +359,89 @@
       showError(ev.reason ? `Disconnected: ${ev.reason}` : "Disconnected. Reload to reconnect.");
     };
   }
+  // ---- meshes: the job's own, re-extractions, downloads (API key calls) -------------
+  // The viewer token only grants viewing; listing and starting extractions use the
+  // API key this tab was given (asked for when missing). Downloads go through fetch
+  // so the key travels in the Authorization header, never in a URL.
+  const MESH_FILES = ["mesh.glb", "mesh.ply", "mesh.obj"];
+  async function api(path, opts = {}) {
+    let key = sessionStorage.getItem(KEY_STORE);
+    if (!key) { key = await askKey(); sessionStorage.setItem(KEY_STORE, key); }
+    const r = await fetch(path, { ...opts, headers: { ...(opts.headers || {}), Authorization: `Bearer ${key}` } });
+    if (!r.ok) {
+      const p = await r.json().catch(() => ({}));
+      const field = p.errors && p.errors[0] && p.errors[0].field ? ` (${p.errors[0].field})` : "";
+      throw new Error((p.detail || `HTTP ${r.status}`) + field);
+    }
+    return r;
+  }
+  function downloadLink(id, name) {
+    const a = document.createElement("a");
+    a.href = "#"; a.textContent = name.replace("mesh.", ""); a.dataset.file = name; a.title = `download ${name}`;
+    a.addEventListener("click", async (ev) => {
+      ev.preventDefault();
+      try {
+        const blob = await (await api(`/v1/jobs/${encodeURIComponent(id)}/artifacts/${name}`)).blob();
+        const url = URL.createObjectURL(blob);
+        const tmp = document.createElement("a");
+        tmp.href = url; tmp.download = `${id}_${name}`;
+        document.body.appendChild(tmp); tmp.click(); tmp.remove();
+        setTimeout(() => URL.revokeObjectURL(url), 30000);
+      } catch (e) { $("mesh-note").textContent = `Download failed: ${e.message}`; }
+    });
+    return a;
+  }
+  function meshItem(id, label, meta, done) {
+    const li = document.createElement("li");
+    li.dataset.job = id; li.dataset.state = meta.state;
+    const head = document.createElement("div");
+    head.textContent = `${label} · ${meta.text}`;
+    li.appendChild(head);
+    if (done) {
+      const links = document.createElement("div");
+      links.className = "links";
+      for (const f of MESH_FILES) links.appendChild(downloadLink(id, f));
+      li.appendChild(links);
+    }
+    return li;
+  }
+  let meshTimer = null;
+  async function refreshMeshes() {
+    clearTimeout(meshTimer);
+    const box = $("meshes");
+    try {
+      const own = await (await api(`/v1/jobs/${encodeURIComponent(jobId)}/artifacts`)).json();
+      const list = await (await api(`/v1/jobs/${encodeURIComponent(jobId)}/meshes?limit=20`)).json();
+      box.replaceChildren();
+      if (own.some((a) => a.name === "mesh.ply")) {
+        box.appendChild(meshItem(jobId, "from training", { state: "succeeded", text: "done" }, true));
+      }
+      let active = false;
+      for (const m of list.items) {
+        const c = m.config || {};
+        const pct = Math.round((m.progress || 0) * 100);
+        const text = m.state === "running" ? `${m.stage ? m.stage.step : "starting"} ${pct} %` : m.state;
+        active = active || m.state === "queued" || m.state === "running";
+        box.appendChild(meshItem(m.id, `${c.resolution || 256}³ ${c.color || "base"}`, { state: m.state, text }, m.state === "succeeded"));
+      }
+      if (!box.children.length) $("mesh-note").textContent = "No mesh yet.";
+      else if ($("mesh-note").textContent === "No mesh yet.") $("mesh-note").textContent = "";
+      if (active) meshTimer = setTimeout(refreshMeshes, 1000);
+    } catch (e) { $("mesh-note").textContent = `Meshes: ${e.message}`; }
+  }
+  $("mesh-start").addEventListener("click", async () => {
+    $("mesh-note").textContent = "";
+    try {
+      await api(`/v1/jobs/${encodeURIComponent(jobId)}/meshes`, {
+        method: "POST",
+        headers: { "Content-Type": "application/json" },
+        body: JSON.stringify({ resolution: Number($("mesh-res").value), color: $("mesh-color").value }),
+      });
+      refreshMeshes();
+    } catch (e) { $("mesh-note").textContent = `Cannot extract: ${e.message}`; }
+  });
+  state.refreshMeshes = refreshMeshes;
+
   $("job-id").textContent = jobId;
-  connect();
+  connect().then(() => { if (sessionStorage.getItem(KEY_STORE)) refreshMeshes(); });
 })();

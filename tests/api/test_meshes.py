@@ -1,0 +1,228 @@
+"""Meshes through the API alone: every job ends with one; re-extraction on request.
+
+Real uvicorn, real runner (the queue double runs ``run_job`` on threads, as the
+embedded queue does); the Celery path is in ``tests/worker/test_celery.py``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from tests.api.support import TINY_CONFIG, LiveServer, multipart, wait_for
+
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+def _ready_scene(c, scene) -> str:  # type: ignore[no-untyped-def]
+    r = c.post("/v1/scenes", json={"name": "mesh me"})
+    sid = r.json()["id"]
+    assert c.post(f"/v1/scenes/{sid}/files", files=multipart(scene)).status_code == 201
+    assert c.post(f"/v1/scenes/{sid}/commit").json()["state"] == "ready"
+    return sid
+
+
+def _finished(c, job_id: str, timeout: float = 180) -> dict:  # type: ignore[no-untyped-def]
+    def done() -> dict | None:
+        j = c.get(f"/v1/jobs/{job_id}").json()
+        return j if j["state"] in TERMINAL else None
+
+    return wait_for(done, timeout=timeout, every=0.2)
+
+
+def _load(c, job_id: str, name: str) -> trimesh.Trimesh:  # type: ignore[no-untyped-def]
+    r = c.get(f"/v1/jobs/{job_id}/artifacts/{name}")
+    assert r.status_code == 200, r.text
+    return trimesh.load(io.BytesIO(r.content), file_type=name.rsplit(".", 1)[1], force="mesh")
+
+
+def _check_mesh(mesh: trimesh.Trimesh, *, normals: bool) -> None:
+    assert len(mesh.faces) > 50
+    assert mesh.visual.kind == "vertex"
+    vc = np.asarray(mesh.visual.vertex_colors)[:, :3]
+    assert vc.std() > 0 or vc.mean() > 0  # coloured, not the default grey of no colour
+    # the synthetic sphere (r = 0.6) sits at the origin, inside the scene's box
+    r = np.linalg.norm(mesh.vertices, axis=1)
+    assert r.max() < 1.2
+    if normals:
+        assert "vertex_normals" in mesh._cache or len(mesh.vertex_normals) == len(mesh.vertices)
+
+
+@pytest.fixture(scope="module")
+def trained(server: LiveServer, scene, tmp_path_factory) -> tuple[str, str]:  # type: ignore[no-untyped-def]
+    """(key, job id) of one finished tiny job with the default outputs (mesh on)."""
+    key = server.new_key("mesh-owner")
+    with server.client(key) as c:
+        sid = _ready_scene(c, scene)
+        r = c.post("/v1/jobs", json={"scene_id": sid, "config": TINY_CONFIG})
+        assert r.status_code == 201, r.text
+        job = _finished(c, r.json()["id"])
+        assert job["state"] == "succeeded", job["error"]
+    return key, job["id"]
+
+
+def test_a_training_job_ends_with_a_coloured_mesh(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    key, job_id = trained
+    with server.client(key) as c:
+        job = c.get(f"/v1/jobs/{job_id}").json()
+        assert job["kind"] == "train" and job["plan"]["decisions"]["mesh"]["value"] is True
+        assert job["stage"]["name"] == "mesh"
+        arts = {a["name"]: a for a in c.get(f"/v1/jobs/{job_id}/artifacts").json()}
+        for name, ctype in (
+            ("mesh.ply", "application/x-ply"),
+            ("mesh.glb", "model/gltf-binary"),
+            ("mesh.obj", "model/obj"),
+            ("mesh_preview.png", "image/png"),
+        ):
+            assert arts[name]["content_type"] == ctype
+            body = c.get(arts[name]["url"]).content
+            assert len(body) == arts[name]["size"] > 0
+            assert hashlib.sha256(body).hexdigest() == arts[name]["sha256"]
+        _check_mesh(_load(c, job_id, "mesh.ply"), normals=True)
+        _check_mesh(_load(c, job_id, "mesh.glb"), normals=False)
+        info = json.loads(c.get(f"/v1/jobs/{job_id}/artifacts/mesh.json").content)
+        assert info["color"] == "base" and info["faces"] > 50
+        report = c.get(f"/v1/jobs/{job_id}/artifacts/report.md").text
+        assert "## Mesh" in report and "mesh_preview.png" in report
+        assert not any(n.endswith(".tmp") or "staging" in n for n in arts)
+
+
+def test_mesh_outputs_can_be_switched_off(server: LiveServer, scene) -> None:  # type: ignore[no-untyped-def]
+    with server.client(server.new_key("no-mesh-owner")) as c:
+        sid = _ready_scene(c, scene)
+        cfg = {**TINY_CONFIG, "iterations": 6, "outputs": {"mesh": False}}
+        job = _finished(c, c.post("/v1/jobs", json={"scene_id": sid, "config": cfg}).json()["id"])
+        assert job["state"] == "succeeded", job["error"]
+        names = {a["name"] for a in c.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+        assert "point_cloud.ply" in names and not {"mesh.ply", "mesh.glb"} & names
+        assert job["plan"]["decisions"]["mesh"]["value"] is False
+
+
+def test_reextraction_with_radiance_colour_and_listing(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    key, job_id = trained
+    with server.client(key) as c:
+        r = c.post(
+            f"/v1/jobs/{job_id}/meshes",
+            json={"resolution": 40, "color": "radiance", "keep_fraction": 0.0, "simplify": 200},
+        )
+        assert r.status_code == 201, r.text
+        mesh_job = r.json()
+        assert mesh_job["kind"] == "mesh" and mesh_job["parent_id"] == job_id
+        done = _finished(c, mesh_job["id"])
+        assert done["state"] == "succeeded", done["error"]
+        assert done["progress"] == 1.0 and done["phase"] == "mesh"
+        info = json.loads(c.get(f"/v1/jobs/{done['id']}/artifacts/mesh.json").content)
+        assert info["color"] == "radiance" and info["fusion"]["shape"][0] <= 41
+        mesh = _load(c, done["id"], "mesh.ply")
+        assert len(mesh.faces) <= 220  # simplified to about 200 faces
+        listed = c.get(f"/v1/jobs/{job_id}/meshes").json()
+        assert done["id"] in [m["id"] for m in listed["items"]]
+        assert all(m["parent_id"] == job_id for m in listed["items"])
+        # only mesh jobs when asked
+        kinds = {j["kind"] for j in c.get("/v1/jobs", params={"kind": "mesh"}).json()["items"]}
+        assert kinds == {"mesh"}
+
+
+def test_another_owner_sees_nothing(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    _, job_id = trained
+    with server.client(server.new_key("intruder")) as c:
+        assert c.post(f"/v1/jobs/{job_id}/meshes", json={}).status_code == 404
+        assert c.get(f"/v1/jobs/{job_id}/meshes").status_code == 404
+
+
+@pytest.mark.parametrize(
+    ("body", "field"),
+    [
+        ({"resolution": 100_000}, "body.resolution"),
+        ({"resolution": 4}, "body.resolution"),
+        ({"color": "chrome"}, "body.color"),
+        ({"voxel": 1e-9}, "body.voxel"),
+        ({"voxel": -1}, "body.voxel"),
+        ({"keep_fraction": 2}, "body.keep_fraction"),
+        ({"simplify": 1}, "body.simplify"),
+        ({"levels": 3}, "body.levels"),
+    ],
+)
+def test_bad_mesh_requests_name_the_field(server: LiveServer, trained, body, field) -> None:  # type: ignore[no-untyped-def]
+    key, job_id = trained
+    with server.client(key) as c:
+        before = c.get(f"/v1/jobs/{job_id}/meshes").json()["total"]
+        r = c.post(f"/v1/jobs/{job_id}/meshes", json=body)
+        assert r.status_code == 422, r.text
+        assert r.headers["content-type"].startswith("application/problem+json")
+        assert field in [e["field"] for e in r.json()["errors"]]
+        assert c.get(f"/v1/jobs/{job_id}/meshes").json()["total"] == before  # nothing queued
+
+
+def test_meshing_an_unfinished_job_is_a_conflict(server: LiveServer, scene) -> None:  # type: ignore[no-untyped-def]
+    with server.client(server.new_key("early-owner")) as c:
+        sid = _ready_scene(c, scene)
+        server.queue.hold()
+        try:
+            job = c.post("/v1/jobs", json={"scene_id": sid, "config": TINY_CONFIG}).json()
+            r = c.post(f"/v1/jobs/{job['id']}/meshes", json={})
+            assert r.status_code == 409 and r.json()["type"].endswith("job-not-finished")
+            assert c.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "cancelled"
+        finally:
+            server.queue.release()
+
+
+def test_cancelled_extraction_leaves_no_artifact(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    key, job_id = trained
+    with server.client(key) as c:
+        server.queue.hold()
+        try:
+            mesh_job = c.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 48}).json()
+            r = c.post(f"/v1/jobs/{mesh_job['id']}/cancel")
+            assert r.json()["state"] == "cancelled"
+        finally:
+            server.queue.release()
+        assert c.get(f"/v1/jobs/{mesh_job['id']}/artifacts").json() == []
+
+
+def test_a_running_extraction_stops_on_cancel(server: LiveServer, trained, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """Cancel while the extraction runs: the job ends cancelled, with no mesh files."""
+    import core.meshing.mesh as mesh_mod
+
+    key, job_id = trained
+    started = []
+    real = mesh_mod.model_depth_frame
+
+    def slow_frame(*a, **kw):  # type: ignore[no-untyped-def]
+        started.append(1)
+        import time
+
+        time.sleep(0.3)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(mesh_mod, "model_depth_frame", slow_frame)
+    with server.client(key) as c:
+        mesh_job = c.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 48}).json()
+        wait_for(lambda: started, timeout=60)
+        assert c.post(f"/v1/jobs/{mesh_job['id']}/cancel").status_code == 200
+        done = _finished(c, mesh_job["id"])
+        assert done["state"] == "cancelled", done
+        assert c.get(f"/v1/jobs/{mesh_job['id']}/artifacts").json() == []
+    run = Path(server.settings.store_root) / "jobs" / mesh_job["id"] / "run"
+    assert not list(run.glob("mesh*")) and not list(run.glob("*.tmp"))
+
+
+def test_deleting_a_job_deletes_its_meshes(server: LiveServer, scene) -> None:  # type: ignore[no-untyped-def]
+    with server.client(server.new_key("delete-owner")) as c:
+        sid = _ready_scene(c, scene)
+        cfg = {**TINY_CONFIG, "iterations": 6, "outputs": {"mesh": False}}
+        job = _finished(c, c.post("/v1/jobs", json={"scene_id": sid, "config": cfg}).json()["id"])
+        mesh = _finished(
+            c, c.post(f"/v1/jobs/{job['id']}/meshes", json={"resolution": 32}).json()["id"]
+        )
+        assert mesh["state"] == "succeeded", mesh["error"]
+        assert c.delete(f"/v1/jobs/{job['id']}").status_code == 204
+        assert c.get(f"/v1/jobs/{mesh['id']}").status_code == 404
+    store = Path(server.settings.store_root) / "jobs"
+    assert not (store / mesh["id"]).exists() and not (store / job["id"]).exists()

@@ -1,0 +1,139 @@
+"""Meshes of a trained model: streaming fusion, colour modes, files, cancel, preview."""
+
+from __future__ import annotations
+
+import gc
+import json
+import weakref
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+from PIL import Image
+
+from core.config import config_from_dict
+from core.meshing.mesh import (
+    MESH_FILES,
+    PREVIEW_FILE,
+    MeshCancelledError,
+    mesh_model,
+    model_depth_frame,
+)
+from core.meshing.tsdf import DepthFrame, fuse_depth_frames, fuse_frames
+from core.model.run_folder import open_run
+from core.scene.synthetic import fibonacci_cameras, render_synthetic_view
+from core.training.run import train_scene
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+    from core.scene.synthetic import write_synthetic_scene
+
+    root = tmp_path_factory.mktemp("mesh-model")
+    scene = write_synthetic_scene(root / "scene", "sphere", "glossy", n_train=8, n_test=1, size=32)
+    cfg = config_from_dict(
+        {"iterations": 40, "init_points": 800, "envmap_resolution": 8,
+         "densify": {"enabled": False}, "outputs": {"mesh": False}}
+    )  # fmt: skip
+    train_scene(scene, root / "run", cfg)
+    return open_run(root / "run")
+
+
+def test_fusion_holds_one_frame_at_a_time() -> None:
+    cams = fibonacci_cameras(10, distance=3.0, size=24)
+    refs: list[weakref.ref] = []
+    peak = [0]
+    calls: list[int] = []
+
+    def frame_at(i: int) -> DepthFrame:
+        gc.collect()
+        r = render_synthetic_view(cams[i], shape="sphere", kind="diffuse", samples=1)
+        f = DepthFrame(cams[i], r.depth, (r.depth > 0) & (r.alpha > 0.5), r.alpha < 0.05)
+        refs.append(weakref.ref(f))
+        peak[0] = max(peak[0], sum(r() is not None for r in refs))
+        calls.append(i)
+        return f
+
+    vol, params = fuse_frames(len(cams), frame_at, center=torch.zeros(3), radius=2.0, resolution=32)
+    assert peak[0] <= 2  # the frame being made and at most the previous one, never all 10
+    assert len(calls) == 3 * len(cams)  # bounds, band, integrate
+    assert params.frames == len(cams) and params.band_voxels > 0
+    # the in-memory entry point fuses the same frames to the same volume
+    frames = [frame_at(i) for i in range(len(cams))]
+    vol2, params2 = fuse_depth_frames(frames, center=torch.zeros(3), radius=2.0, resolution=32)
+    assert params2.shape == params.shape and params2.band_voxels == params.band_voxels
+    torch.testing.assert_close(vol2.tsdf, vol.tsdf)
+
+
+def test_base_colour_is_the_material_not_the_reflection(run) -> None:  # type: ignore[no-untyped-def]
+    model, scene = run
+    v = scene.train[0]
+    base = model_depth_frame(model, v, color="base")
+    rad = model_depth_frame(model, v, color="radiance")
+    geo = model_depth_frame(model, v, color=None)
+    assert geo.color is None
+    torch.testing.assert_close(base.depth, rad.depth)
+    m = base.valid
+    assert m.any()
+    # radiance = base + w_r · E(reflection) ≥ base wherever the surface is seen
+    diff = rad.color[m] - base.color[m]
+    assert float(diff.min()) >= -1e-4
+    if model.phase.envmap:  # the reflection is there: radiance is brighter
+        assert float(diff.mean()) > 1e-3
+    with pytest.raises(ValueError, match="unknown mesh colour"):
+        model_depth_frame(model, v, color="chrome")
+
+
+def test_mesh_files_normals_colours_and_preview(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    model, scene = run
+    steps: list[str] = []
+    _, info = mesh_model(
+        model, scene.train, tmp_path, resolution=40, progress=lambda s, d, t: steps.append(s)
+    )
+    assert {"bounds", "band", "integrate", "extract", "write"} == set(steps)
+    for name in (*MESH_FILES, PREVIEW_FILE, "mesh.json"):
+        assert (tmp_path / name).is_file(), name
+    assert not list(tmp_path.glob("*.tmp"))
+    ply = trimesh.load(tmp_path / "mesh.ply", process=False)
+    assert len(ply.faces) == info["faces"] > 50
+    header = (tmp_path / "mesh.ply").read_bytes()[:400]
+    assert b"property float nx" in header and b"property uchar red" in header
+    assert b"binary_little_endian" in header
+    glb = trimesh.load(tmp_path / "mesh.glb", force="mesh")
+    assert glb.visual.kind == "vertex"
+    assert json.loads((tmp_path / "mesh.json").read_text())["color"] == "base"
+    img = np.asarray(Image.open(tmp_path / PREVIEW_FILE))
+    assert img.shape[0] == img.shape[1] and img.std() > 10  # a picture, not a blank
+    r = np.linalg.norm(ply.vertices, axis=1)
+    assert 0.3 < np.median(r) < 0.9  # around the r = 0.6 sphere
+
+
+def test_simplify_keeps_colour(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    model, scene = run
+    mesh, info = mesh_model(
+        model, scene.train, tmp_path, resolution=40, simplify=150, preview=False
+    )
+    assert len(mesh.faces) <= 170 and info["simplified_to"] == 150
+    vc = np.asarray(mesh.visual.vertex_colors)
+    assert len(vc) == len(mesh.vertices) and vc[:, :3].std() >= 0
+    assert not (tmp_path / PREVIEW_FILE).exists()
+
+
+def test_cancel_and_bad_input_leave_nothing(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    model, scene = run
+    asked = []
+
+    def stop() -> bool:
+        asked.append(1)
+        return len(asked) > 5
+
+    with pytest.raises(MeshCancelledError):
+        mesh_model(model, scene.train, tmp_path, resolution=40, should_stop=stop)
+    assert list(tmp_path.iterdir()) == []
+    with pytest.raises(ValueError, match="limit of 32"):
+        mesh_model(model, scene.train, tmp_path, resolution=64, max_resolution=32)
+    with pytest.raises(ValueError, match="unknown mesh colour"):
+        mesh_model(model, scene.train, tmp_path, color="gold")
+    assert list(tmp_path.iterdir()) == []
