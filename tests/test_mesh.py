@@ -107,3 +107,29 @@ def test_components_and_export_round_trip(tmp_path) -> None:
         assert len(back.faces) == len(big.faces), p.name
     ply = trimesh.load(paths[0], force="mesh", process=False)
     assert np.array_equal(np.asarray(ply.visual.vertex_colors)[0], [200, 100, 50, 255])
+
+
+def test_vertex_colours_interpolate_trilinearly_from_the_band() -> None:
+    """A colour field linear in position comes back exactly at any point whose 8
+    neighbours are in the band; a point with no coloured neighbour gets weight 0."""
+    from core.meshing.tsdf import TSDFVolume, VoxelGrid
+
+    grid = VoxelGrid((0.0, 0.0, 0.0), 0.1, (6, 7, 8))
+    all_ijk = torch.stack(torch.unravel_index(torch.arange(grid.count), grid.shape), -1)
+    band = torch.arange(grid.count)[all_ijk[:, 0] != 3]  # a slab outside the band
+    vol = TSDFVolume(grid, 0.3, band)
+    ijk = torch.stack(torch.unravel_index(vol.index, grid.shape), -1).float()
+    field = torch.stack([ijk[:, 0] / 5, ijk[:, 1] / 6, ijk[:, 2] / 7], -1)
+    vol.color[:] = field
+    vol.color_weight[:] = 1.0
+    rng = np.random.default_rng(0)
+    pts = rng.uniform(0, 1, (200, 3)) * (np.array(grid.shape) - 1)
+    got = vol.vertex_colors(pts)
+    flat = np.ravel_multi_index(np.floor(pts).astype(int).T, grid.shape)
+    corners_in = np.ones(len(pts), bool)
+    for d in np.ndindex(2, 2, 2):
+        c = np.minimum(np.floor(pts).astype(int) + d, np.array(grid.shape) - 1)
+        corners_in &= c[:, 0] != 3
+    assert corners_in.sum() > 20 and flat.size == 200
+    want = pts / (np.array(grid.shape) - 1)
+    np.testing.assert_allclose(got[corners_in], want[corners_in], atol=1e-5)

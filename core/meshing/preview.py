@@ -21,6 +21,7 @@ from torch import Tensor
 from core.scene.cameras import Camera, Intrinsics
 
 SAMPLES_PER_PIXEL = 12  # surface samples per output pixel (both sides of the object)
+CHUNK = 200_000  # samples drawn and splatted at once
 BACKGROUND = 1.0  # white
 
 
@@ -45,50 +46,59 @@ def preview_cameras(mesh: trimesh.Trimesh, size: int) -> list[Camera]:
     return cams
 
 
-def _sample(mesh: trimesh.Trimesh, n: int, seed: int = 0) -> tuple[np.ndarray, ...]:
-    """(points, face normals, colours in [0, 1]) of ``n`` samples uniform by area."""
-    rng = np.random.default_rng(seed)
-    v = np.asarray(mesh.vertices, dtype=np.float64)
+def _sample(mesh: trimesh.Trimesh, n: int, rng: np.random.Generator) -> tuple[Tensor, ...]:
+    """(points, face normals, colours in [0, 1]) of ``n`` samples uniform by area, float32."""
+    v = np.asarray(mesh.vertices, dtype=np.float32)
     f = np.asarray(mesh.faces)
     areas = np.asarray(mesh.area_faces, dtype=np.float64)
     face = rng.choice(len(f), size=n, p=areas / areas.sum())
-    r1, r2 = rng.random(n), rng.random(n)
+    r1, r2 = rng.random(n, dtype=np.float32), rng.random(n, dtype=np.float32)
     s = np.sqrt(r1)
     w = np.stack([1 - s, s * (1 - r2), s * r2], 1)  # barycentric weights
     tri = f[face]
-    pts = (v[tri] * w[..., None]).sum(1)
-    normals = np.asarray(mesh.face_normals)[face]
-    colors = np.full((n, 3), 0.7)
+    pts = np.einsum("nk,nkc->nc", w, v[tri])
+    normals = np.asarray(mesh.face_normals, dtype=np.float32)[face]
     vc = getattr(mesh.visual, "vertex_colors", None)
     if vc is not None and len(vc) == len(v):
-        colors = (np.asarray(vc, dtype=np.float64)[tri, :3] / 255.0 * w[..., None]).sum(1)
-    return pts, normals, colors
+        rgb = np.asarray(vc, dtype=np.float32)[:, :3] / 255.0
+        colors = np.einsum("nk,nkc->nc", w, rgb[tri])
+    else:
+        colors = np.full((n, 3), 0.7, dtype=np.float32)
+    return torch.from_numpy(pts), torch.from_numpy(normals), torch.from_numpy(colors)
 
 
-def _splat(
-    camera: Camera, pts: Tensor, normals: Tensor, colors: Tensor
-) -> tuple[np.ndarray, np.ndarray]:
-    """Normal-shaded and colour-shaded images (H, W, 3) float in [0, 1]."""
-    H, W = camera.height, camera.width
-    uv, z = camera.project(pts)
-    u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
-    ok = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
-    pix = (v * W + u)[ok]
-    z, n, c, p = z[ok], normals[ok], colors[ok], pts[ok]
-    zbuf = torch.full((H * W,), float("inf"), dtype=z.dtype)
-    zbuf.scatter_reduce_(0, pix, z, reduce="amin")
-    front = z <= zbuf[pix]
-    pix, n, c, p = pix[front], n[front], c[front], p[front]
-    view = camera.center.to(p) - p
-    view = view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12)
-    facing = (n * view).sum(-1, keepdim=True)
-    n = torch.where(facing < 0, -n, n)  # both sides of an open surface are drawn lit
-    lambert = 0.3 + 0.7 * facing.abs()
-    normal_img = torch.full((H * W, 3), BACKGROUND, dtype=n.dtype)
-    color_img = torch.full((H * W, 3), BACKGROUND, dtype=n.dtype)
-    normal_img[pix] = n * 0.5 + 0.5
-    color_img[pix] = (c * lambert).clamp(0, 1)
-    return normal_img.reshape(H, W, 3).numpy(), color_img.reshape(H, W, 3).numpy()
+class _Canvas:
+    """Z-buffer and the two images of one viewpoint, filled chunk by chunk."""
+
+    def __init__(self, camera: Camera) -> None:
+        self.camera = camera
+        n = camera.height * camera.width
+        self.zbuf = torch.full((n,), float("inf"))
+        self.normal = torch.full((n, 3), BACKGROUND)
+        self.color = torch.full((n, 3), BACKGROUND)
+
+    def splat(self, pts: Tensor, normals: Tensor, colors: Tensor) -> None:
+        cam = self.camera
+        H, W = cam.height, cam.width
+        uv, z = cam.project(pts)
+        z = z.float()
+        u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+        ok = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
+        pix = (v * W + u)[ok]
+        z, n, c, p = z[ok], normals[ok], colors[ok], pts[ok]
+        self.zbuf.scatter_reduce_(0, pix, z, reduce="amin")
+        front = z <= self.zbuf[pix]  # nearest so far (a later chunk may still win)
+        pix, n, c, p = pix[front], n[front], c[front], p[front]
+        view = cam.center.to(p) - p
+        view = view / view.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        facing = (n * view).sum(-1, keepdim=True)
+        n = torch.where(facing < 0, -n, n)  # both sides of an open surface are drawn lit
+        self.normal[pix] = n * 0.5 + 0.5
+        self.color[pix] = (c * (0.3 + 0.7 * facing.abs())).clamp(0, 1)
+
+    def images(self) -> np.ndarray:
+        H, W = self.camera.height, self.camera.width
+        return torch.cat([self.normal.reshape(H, W, 3), self.color.reshape(H, W, 3)], 1).numpy()
 
 
 def render_mesh_preview(mesh: trimesh.Trimesh, path: str | Path, size: int = 320) -> Path:
@@ -103,11 +113,15 @@ def render_mesh_preview(mesh: trimesh.Trimesh, path: str | Path, size: int = 320
         tile = np.full((size, size, 3), BACKGROUND)
         rows = [np.concatenate([tile, tile], 1)] * 2
     else:
-        n = SAMPLES_PER_PIXEL * size * size
-        pts, normals, colors = (torch.from_numpy(a) for a in _sample(mesh, n))
-        for cam in preview_cameras(mesh, size):
-            normal_img, color_img = _splat(cam, pts, normals, colors)
-            rows.append(np.concatenate([normal_img, color_img], 1))
+        canvases = [_Canvas(cam) for cam in preview_cameras(mesh, size)]
+        rng = np.random.default_rng(0)
+        left = SAMPLES_PER_PIXEL * size * size
+        while left > 0:  # in chunks: memory stays at one chunk's samples
+            chunk = _sample(mesh, min(left, CHUNK), rng)
+            for canvas in canvases:
+                canvas.splat(*chunk)
+            left -= CHUNK
+        rows = [canvas.images() for canvas in canvases]
     img = (np.concatenate(rows, 0) * 255.0 + 0.5).clip(0, 255).astype(np.uint8)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
