@@ -118,6 +118,18 @@ def third_party(modules: dict[str, str]) -> tuple[dict[str, str], list[str]]:
     return dists, unknown
 
 
+def runtime_requirements(dist: str) -> list[Requirement]:
+    """What ``dist`` (as installed here) needs on CPython 3.12 / Linux, extras left out."""
+    try:
+        reqs = md.requires(dist) or []
+    except md.PackageNotFoundError:
+        return []
+    env = {**TARGET_ENV, "extra": ""}
+    return [
+        r for r in map(Requirement, reqs) if r.marker is None or r.marker.evaluate(env)
+    ]  # fmt: skip
+
+
 def closure(dists: set[str]) -> set[str]:
     """The distributions and their runtime requirements, for CPython 3.12 on Linux."""
     seen: set[str] = set()
@@ -127,15 +139,7 @@ def closure(dists: set[str]) -> set[str]:
         if d in seen:
             continue
         seen.add(d)
-        try:
-            reqs = md.requires(d) or []
-        except md.PackageNotFoundError:
-            continue
-        for r in reqs:
-            req = Requirement(r)
-            if req.marker is not None and not req.marker.evaluate({**TARGET_ENV, "extra": ""}):
-                continue
-            todo.append(norm(req.name))
+        todo += [norm(r.name) for r in runtime_requirements(d)]
     return seen
 
 
@@ -145,15 +149,8 @@ def image_requirements(carried: set[str]) -> dict[str, list[str]]:
     image = image_packages()
     out: dict[str, set[str]] = {}
     for d in sorted(carried | {"glint"}):
-        try:
-            reqs = md.requires(d) or []
-        except md.PackageNotFoundError:
-            continue
-        for r in reqs:
-            req = Requirement(r)
+        for req in runtime_requirements(d):
             name = norm(req.name)
-            if req.marker is not None and not req.marker.evaluate({**TARGET_ENV, "extra": ""}):
-                continue
             if name in image and not TORCH_SIDE.match(name) and str(req.specifier):
                 out.setdefault(name, set()).add(str(req.specifier))
     return {k: sorted(v) for k, v in sorted(out.items())}

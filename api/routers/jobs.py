@@ -17,7 +17,7 @@ import json
 import logging
 from collections.abc import AsyncIterator
 from datetime import UTC, datetime
-from typing import Annotated
+from typing import Annotated, Any
 
 import anyio
 from fastapi import APIRouter, Header, Path, Query, Request, Response
@@ -136,6 +136,11 @@ def list_jobs(
         where.append(Job.scene_id == scene_id)
     if kind:
         where.append(Job.kind == kind)
+    return job_page(session, where, limit, offset)
+
+
+def job_page(session: Session, where: list[Any], limit: int, offset: int) -> Page[JobOut]:
+    """One page of the jobs matching ``where``, newest first, with the total count."""
     total = session.scalar(select(func.count()).select_from(Job).where(*where)) or 0
     rows = session.scalars(
         select(Job)

@@ -15,11 +15,10 @@ from pathlib import Path
 from typing import Annotated
 
 from fastapi import APIRouter, Query
-from sqlalchemy import func, select
 
 from api.deps import JsonBody, PrincipalDep, QueueDep, SessionDep, SettingsDep, StoreDep
 from api.problems import ApiError, FieldError, responses
-from api.routers.jobs import AUTH, JobId, enqueue, owned_job
+from api.routers.jobs import AUTH, JobId, enqueue, job_page, owned_job
 from api.schemas import JobOut, MeshCreate, Page
 from api.service.models import Job, JobKind, JobState, new_id
 from api.service.store import job_run_key
@@ -124,13 +123,5 @@ def list_meshes(
 ) -> Page[JobOut]:
     parent = owned_job(session, principal, job_id)
     limit = min(limit, settings.page_size_max)
-    where = (Job.parent_id == parent.id, Job.owner == principal.owner)
-    total = session.scalar(select(func.count()).select_from(Job).where(*where)) or 0
-    rows = session.scalars(
-        select(Job)
-        .where(*where)
-        .order_by(Job.created_at.desc(), Job.id)
-        .limit(limit)
-        .offset(offset)
-    )
-    return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
+    where = [Job.parent_id == parent.id, Job.owner == principal.owner]
+    return job_page(session, where, limit, offset)
