@@ -100,6 +100,9 @@ def _print_summary(out, result, summary) -> None:
             f"normal error {g['normal_error_deg']:.2f} deg, "
             f"depth error {g['depth_rel_error'] * 100:.2f}%"
         )
+    if summary and summary.get("mesh"):
+        ms = summary["mesh"]
+        print(f"mesh: {ms['faces']:,} faces, vertex colour {ms['color']} (mesh.ply/.glb/.obj)")
     print(f"outputs in {out} (report.md, error_vs_time.png, point_cloud.ply, renders/)")
 
 
