@@ -142,6 +142,8 @@ def stage_wheels(kit: Kit) -> dict[str, Any]:
     res = check_lock()
     if res["problems"]:
         raise RuntimeError("; ".join(res["problems"]))
+    if res["warnings"]:
+        res["note_drift"] = "the lock differs from this environment; refresh: gpu_wheels --lock"
     from bench.gpu_wheels import LOCK, check_image
 
     reqs = json.loads(LOCK.read_text())["image_requirements"]

@@ -242,19 +242,33 @@ def fetch(dest: Path) -> list[Path]:
 
 
 def check_lock() -> dict:
-    """The dry run's check: problems (empty when the lock is complete) and figures."""
+    """The dry run's check, without network or GPU.
+
+    ``problems`` (the kit would break): a module the kit's code imports whose distribution
+    is neither locked nor in the image, a lock over 64 MiB, a wheel not for cp312.
+    ``warnings`` (the lock has drifted from this environment: refresh it with ``--lock``):
+    a locked version other than the one installed here, a transitive requirement not
+    locked, stale image requirements. Versions drift whenever the index moves on, so
+    only ``--check --strict`` (for whoever refreshes the lock) fails on them.
+    """
     problems: list[str] = []
+    warnings: list[str] = []
     data = json.loads(LOCK.read_text())
     locked = {e["name"]: e["version"] for e in data["wheels"]}
-    dists, unknown = needed()
+    image = image_packages()
+    direct, unknown = third_party(imported_modules(kit_files()))
     problems += [f"no distribution for module {u}" for u in unknown]
+    for d, mod in sorted({**direct, **{i: "(indirect)" for i in INDIRECT}}.items()):
+        if d not in locked and d not in image and not TORCH_SIDE.match(d):
+            problems.append(f"{d} (for {mod}) is neither in {LOCK.name} nor in the GPU image")
+    dists, _ = needed()
     for d, v in dists.items():
         if d not in locked:
-            problems.append(f"{d}=={v} is needed but not in {LOCK.name}")
+            warnings.append(f"{d}=={v} is required here but not in {LOCK.name}")
         elif locked[d] != v:
-            problems.append(f"{d}: locked {locked[d]}, the tests here run {v}")
+            warnings.append(f"{d}: locked {locked[d]}, installed here {v}")
     if data.get("image_requirements") != image_requirements(set(dists)):
-        problems.append(f"the image requirements in {LOCK.name} are stale: run --lock")
+        warnings.append(f"the image requirements in {LOCK.name} differ from this environment's")
     total = sum(e["size"] for e in data["wheels"])
     if total > LIMIT_BYTES:
         problems.append(f"the wheels take {total / 2**20:.1f} MiB, over the 64 MiB limit")
@@ -263,6 +277,7 @@ def check_lock() -> dict:
     problems += [f"{f}: not a cp312 / pure-Python wheel" for f in bad]
     return {
         "problems": problems,
+        "warnings": warnings,
         "wheels": len(locked),
         "needed": len(dists),
         "total_mib": round(total / 2**20, 1),
@@ -275,6 +290,7 @@ def main(argv: list[str] | None = None) -> int:
     g.add_argument("--lock", action="store_true", help="resolve, download, write the lock")
     g.add_argument("--fetch", type=Path, metavar="DIR", help="download the locked wheels")
     g.add_argument("--check", action="store_true", help="check the lock (no network)")
+    ap.add_argument("--strict", action="store_true", help="with --check: fail on drift too")
     args = ap.parse_args(argv)
     if args.lock:
         data = lock()
@@ -284,7 +300,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         res = check_lock()
         print(json.dumps(res, indent=2))
-        return 1 if res["problems"] else 0
+        return 1 if res["problems"] or (args.strict and res["warnings"]) else 0
     return 0
 
 
