@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Create .venv (if missing) and install Glint with its dev tools.
-# torch is installed first (TORCH_VERSION, default 2.13.0: the CPU build this machine ships), so that
+# torch is installed first (BOOTSTRAP_TORCH_VERSION, default 2.13.0: the CPU build this machine ships), so that
 # no resolver ever pulls a CUDA build; every other package's torch range accepts it.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -11,6 +11,6 @@ fi
 . .venv/bin/activate
 python -m pip install -q --upgrade pip >/dev/null
 if ! python -c "import torch" 2>/dev/null; then
-    python -m pip install -q "torch==${TORCH_VERSION:-2.13.0}"
+    python -m pip install -q "torch==${BOOTSTRAP_TORCH_VERSION:-2.13.0}"
 fi
 python -m pip install -q -e ".[dev]"
