@@ -188,8 +188,7 @@ def stage_tests(kit: Kit) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", *tests]
     if kit.dry:
         cmd += ["-k", "twin or cuda_unavailable or adapter or camera_matrices"]
-    proc = kit.run(cmd, 590, "tests.log")
-    del proc
+    kit.run(cmd, 590, "tests.log")
     text = (kit.out / "tests.log").read_text()
     summary = [ln for ln in text.splitlines() if " passed" in ln or " failed" in ln]
     skipped = [ln for ln in text.splitlines() if ln.startswith("SKIPPED")]

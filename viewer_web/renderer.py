@@ -22,6 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from core.config import TrainConfig
 from core.model.channels import CHANNELS
 from core.model.frame import to_display
 from core.model.trained import CHECKPOINT_NAME, TrainedModel
@@ -62,7 +63,8 @@ class LoadedModel:
         return self.model.backend
 
     @property
-    def cfg(self):
+    def cfg(self) -> TrainConfig:
+        """The run's config as recorded."""
         return self.model.config
 
     def summary(self) -> dict[str, Any]:

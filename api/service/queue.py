@@ -62,15 +62,14 @@ class CeleryQueue:
     harmless: the runner claims the job in the database."""
 
     def __init__(self, settings: Settings) -> None:
-        from api.service.broker import make_app
+        from api.service.broker import QUEUE, TASK_TRAIN, make_app
 
         self.settings = settings
         self.app = make_app(settings)
+        self.task, self.queue = TASK_TRAIN, QUEUE
 
     def enqueue(self, job_id: str) -> None:
-        from api.service.broker import QUEUE, TASK_TRAIN
-
-        self.app.send_task(TASK_TRAIN, args=[job_id], queue=QUEUE)
+        self.app.send_task(self.task, args=[job_id], queue=self.queue)
 
     def close(self) -> None:
         self.app.close()

@@ -393,13 +393,8 @@ def _run_mesh(
             out,
             scene_dir,
             device=device,
-            resolution=int(config.get("resolution", 256)),
-            voxel=config.get("voxel"),
-            trunc=config.get("trunc"),
-            color=str(config.get("color", "base")),
-            keep_fraction=float(config.get("keep_fraction", 0.1)),
-            simplify=config.get("simplify"),
             max_resolution=max_resolution,
+            **config,  # the MeshCreate request the API validated: mesh_model's parameters
             on_event=reporter.on_event,
             should_stop=reporter.should_stop,
         )

@@ -184,6 +184,7 @@ def mesh_model(
         bounds_frame_at=lambda i: model_depth_frame(
             model, views[i], color=None, scale=bounds_scale
         ),
+        band_frame_at=lambda i: model_depth_frame(model, views[i], color=None),
         center=model.center,
         radius=float(model.radius),
         voxel=voxel,

@@ -359,6 +359,7 @@ def fuse_frames(
     frame_at: FrameSource,
     *,
     bounds_frame_at: FrameSource | None = None,
+    band_frame_at: FrameSource | None = None,
     center: Tensor | Sequence[float] | None = None,
     radius: float | None = None,
     voxel: float | None = None,
@@ -371,10 +372,10 @@ def fuse_frames(
 ) -> tuple[TSDFVolume, FusionParams]:
     """Fuse ``n_frames`` views into a TSDF, holding one view's frame at a time.
 
-    ``frame_at(i)`` makes frame i (a render, typically); it is called twice per view:
-    once to mark the narrow band, once to integrate. ``bounds_frame_at`` (e.g. a
-    quarter-resolution render) gives the points the grid is fitted to; default
-    ``frame_at``. Memory: the band's voxels, one frame, and at most
+    ``frame_at(i)`` makes frame i (a render, typically) to integrate;
+    ``band_frame_at`` (default ``frame_at``; colour is not needed) marks the narrow band
+    and ``bounds_frame_at`` (e.g. a quarter-resolution render; default ``frame_at``)
+    gives the points the grid is fitted to. Memory: the band's voxels, one frame, and at most
     :data:`POINT_BUDGET` points. ``progress(stage, done, total)`` is called after
     each view of each pass; ``max_resolution`` refuses a grid with a longer side.
     """
@@ -382,6 +383,7 @@ def fuse_frames(
         raise ValueError("no frames to fuse")
     report = progress or (lambda stage, done, total: None)
     bounds_at = bounds_frame_at or frame_at
+    band_at = band_frame_at or frame_at
 
     def bounds_frames() -> Iterator[DepthFrame]:
         for i in range(n_frames):
@@ -400,7 +402,7 @@ def fuse_frames(
 
     def band_frames() -> Iterator[DepthFrame]:
         for i in range(n_frames):
-            yield frame_at(i)
+            yield band_at(i)
             report("band", i + 1, n_frames)
 
     band = narrow_band(band_frames(), grid, trunc)
@@ -433,8 +435,6 @@ def fuse_depth_frames(
     device: torch.device | str = "cpu",
 ) -> tuple[TSDFVolume, FusionParams]:
     """Fuse depth frames already in memory (see :func:`fuse_frames`)."""
-    if not frames:
-        raise ValueError("no frames to fuse")
     return fuse_frames(
         len(frames), frames.__getitem__, center=center, radius=radius, voxel=voxel,
         trunc=trunc, resolution=resolution, carve=carve, device=device,

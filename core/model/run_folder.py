@@ -11,7 +11,7 @@ import json
 from pathlib import Path
 
 from core.errors import GlintError
-from core.model.trained import CHECKPOINT_NAME, TrainedModel
+from core.model.trained import TrainedModel
 from core.scene.formats import load_scene
 from core.scene.views import Scene
 
@@ -58,8 +58,6 @@ def open_run(
     config.json is not changed.
     """
     run = Path(run_dir)
-    if not (run / CHECKPOINT_NAME).is_file():
-        raise GlintError(f"{run}: no {CHECKPOINT_NAME}: not a (started) training run")
     model = TrainedModel.open(run, device=device, backend=backend, notes=notes)
     scene = load_scene(
         find_run_scene(run, scene_dir), downscale=1.0 / model.config.resolution_scale

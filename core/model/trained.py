@@ -252,18 +252,9 @@ def _recorded_config(ck_path: Path, saved: Any, *, prefer_folder: bool) -> Train
     it; an operator may edit it); a checkpoint file opened alone carries its own copy.
     Either falls back to the other, then to the defaults."""
     cfg_path = ck_path.parent / "config.json"
-    from_folder = (
-        (lambda: saved_config(json.loads(cfg_path.read_text()), str(cfg_path)))
-        if cfg_path.is_file()
-        else None
-    )
-    from_file = (
-        (lambda: saved_config(dict(saved), f"{ck_path}: extra.config"))
-        if isinstance(saved, dict)
-        else None
-    )
-    order = (from_folder, from_file) if prefer_folder else (from_file, from_folder)
-    for source in order:
-        if source is not None:
-            return source()
+    has_file, has_folder = isinstance(saved, dict), cfg_path.is_file()
+    if has_folder and (prefer_folder or not has_file):
+        return saved_config(json.loads(cfg_path.read_text()), str(cfg_path))
+    if has_file:
+        return saved_config(dict(saved), f"{ck_path}: extra.config")
     return saved_config({}, str(ck_path))
