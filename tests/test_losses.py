@@ -8,12 +8,11 @@ import pytest
 import torch
 
 from core.evaluation.ssim import ssim, ssim_reference
+from core.render.depth_geometry import bilinear_lookup, normals_from_depth
 from core.scene.cameras import Camera, Intrinsics
 from core.training.losses import (
-    bilinear_lookup,
     edge_weight,
     multi_view_loss,
-    normals_from_depth,
     rgb_loss,
     scale_loss,
     single_view_loss,

@@ -12,8 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from core.render.depth_geometry import bilinear_lookup
 from core.scene.views import Scene
-from core.training.losses import bilinear_lookup
 
 
 def _inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:

@@ -22,11 +22,11 @@ import torch
 from core.config import ConfigError, TrainConfig
 from core.evaluation.metrics import to_display
 from core.model.plan import OVERRIDABLE, PAPER_ENVMAP_RESOLUTION, Decision, ScenePlan
+from core.render.depth_geometry import bilinear_lookup
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer
 from core.scene.cameras import Camera
 from core.scene.views import Scene, View
-from core.training.losses import bilinear_lookup
 
 # Two readings of view dependence, both "captured minus view-independent model" over
 # surface points seen by a view and its neighbour (sRGB units):

@@ -1,0 +1,89 @@
+"""Geometry of rendered depth maps: back-projection, normals from depth (Eq. 10),
+bilinear look-ups and projection that stays finite.
+
+Training losses (Eq. 11-14) and the evaluation's consistency measures both use them,
+so they live below both.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from core.scene.cameras import Camera
+
+
+def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:
+    """Camera-space points (H, W, 3) = z-depth · K⁻¹(u, v, 1)."""
+    return depth[..., None] * camera.camera_rays(depth.dtype, depth.device)
+
+
+def normals_from_depth(depth: Tensor, valid: Tensor, camera: Camera) -> tuple[Tensor, Tensor]:
+    """Eq. 10: unit camera-space normals from central differences of back-projected points.
+
+    Returns (normals (H, W, 3) facing the camera, valid (H, W)); a pixel is valid when
+    it and its four neighbours have depth and the cross product is not degenerate.
+    Border pixels are invalid.
+    """
+    P = depth_to_points(depth, camera)
+    H, W = depth.shape
+    n = torch.zeros_like(P)
+    ok = torch.zeros_like(valid)
+    if H < 3 or W < 3:
+        return n, ok
+    du = P[1:-1, 2:] - P[1:-1, :-2]
+    dv = P[2:, 1:-1] - P[:-2, 1:-1]
+    cross = torch.linalg.cross(dv, du)
+    norm = cross.norm(dim=-1, keepdim=True)
+    v = valid[1:-1, 1:-1] & valid[1:-1, 2:] & valid[1:-1, :-2] & valid[2:, 1:-1] & valid[:-2, 1:-1]
+    v = v & (norm[..., 0] > 1e-12)
+    nn = cross / torch.where(norm > 1e-12, norm, torch.ones_like(norm))
+    # Face the camera: a normal seen from the camera satisfies n·P < 0.
+    facing = (nn * P[1:-1, 1:-1]).sum(-1, keepdim=True) <= 0
+    nn = torch.where(facing, nn, -nn)
+    n = F.pad(nn.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+    ok = F.pad(v, (1, 1, 1, 1))
+    return n, ok
+
+
+def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """Sample (H, W) ``img`` at pixel coordinates ``uv`` (M, 2) (centres at +0.5).
+
+    Returns (values (M,), inside (M,)); ``inside`` means within the pixel-centre hull.
+    """
+    H, W = img.shape
+    x = uv[:, 0] - 0.5
+    y = uv[:, 1] - 0.5
+    finite = torch.isfinite(x) & torch.isfinite(y)
+    x = torch.where(finite, x, torch.zeros_like(x))
+    y = torch.where(finite, y, torch.zeros_like(y))
+    inside = finite & (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
+    x0i = torch.floor(x).clamp(0, max(W - 2, 0)).long()
+    y0i = torch.floor(y).clamp(0, max(H - 2, 0)).long()
+    fx = (x - x0i.to(x.dtype)).clamp(0, 1)
+    fy = (y - y0i.to(y.dtype)).clamp(0, 1)
+    flat = img.reshape(-1)
+    i00 = y0i * W + x0i
+    v00, v01 = flat[i00], flat[i00 + 1]
+    v10, v11 = flat[i00 + W], flat[i00 + W + 1]
+    val = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+    return val, inside
+
+
+def project_in_front(camera: Camera, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``camera.project`` with no division by ~0 in the graph: (uv, z, in_front).
+
+    Points not clearly in front of the camera (z ≤ 1e-4·|p_cam|, i.e. within 0.006°
+    of its focal plane, or non-finite) are swapped for a point one unit ahead before
+    projecting and flagged ``in_front = False``. Otherwise x/z with z = 0 gives an
+    infinite uv whose masked-out gradient is 0·∞ = NaN, which the trainer's guard
+    would turn into a skipped step.
+    """
+    with torch.no_grad():
+        pc = camera.world_to_camera_points(points)
+        z = pc[..., 2]
+        front = torch.isfinite(pc).all(-1) & (z > 1e-4 * pc.norm(dim=-1))
+    ahead = (camera.center + camera.forward).to(points)
+    uv, z = camera.project(torch.where(front[..., None], points, ahead))
+    return uv, z, front
