@@ -29,6 +29,9 @@ from api.timing import ServerTimingMiddleware
 
 log = logging.getLogger("glint.api")
 
+# every router of the API, mounted under /v1 (each built with StrictJsonRoute)
+ROUTERS = tuple(m.router for m in (keys, scenes, jobs, meshes, artifacts, workers, viewer))
+
 
 def _recover(database: Database, queue: JobQueue, settings: Settings) -> None:
     """Undo what a crashed process left half done (scenes mid-validation, local jobs)."""
@@ -118,8 +121,8 @@ def create_app(
     app.state.principals = PrincipalCache(settings.auth_cache_s)
     install_handlers(app)
     app.add_middleware(ServerTimingMiddleware)
-    for module in (keys, scenes, jobs, meshes, artifacts, workers, viewer):
-        app.include_router(module.router, prefix="/v1")
+    for router in ROUTERS:
+        app.include_router(router, prefix="/v1")
     viewer_web.mount(app, viewer.make_service(app))
     app.openapi = lambda: _tidy_openapi(app)  # type: ignore[method-assign]
     return app

@@ -17,6 +17,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from core.errors import GlintError
 
 REFERENCE_ITERATIONS = 30_000
+# Upper bounds of the config's numbers: far beyond any sensible run, well inside what
+# the engine (int64 counters, float32 tensors, a database integer) can hold.
+MAX_ITERATIONS = 10_000_000
+MAX_GAUSSIANS = 50_000_000
+MAX_INIT_POINTS = 10_000_000
+MAX_LOSS_WEIGHT = 1e6
+MAX_LEARNING_RATE = 1.0
+MAX_SEED = 2**32 - 1
 
 
 class ConfigError(GlintError):
@@ -24,24 +32,36 @@ class ConfigError(GlintError):
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # NaN and ±Infinity are refused everywhere: no knob of the method means them
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 class Phases(_Strict):
     """Marks on the paper's 30k schedule (scaled to the run's length)."""
 
-    geometry_start: int = Field(3_000, ge=0, description="single-view loss and env map on")
-    multiview_start: int = Field(7_000, ge=0, description="multi-view loss on")
-    sh_full_start: int = Field(10_000, ge=0, description="SH degree 0 until here, then max")
+    geometry_start: int = Field(
+        3_000, ge=0, le=MAX_ITERATIONS, description="single-view loss and env map on"
+    )
+    multiview_start: int = Field(7_000, ge=0, le=MAX_ITERATIONS, description="multi-view loss on")
+    sh_full_start: int = Field(
+        10_000, ge=0, le=MAX_ITERATIONS, description="SH degree 0 until here, then max"
+    )
     min_rgb_iterations: int = Field(
-        500, ge=0, description="short runs: RGB-only phase at least this long (≤ 1/3 of the run)"
+        500,
+        ge=0,
+        le=MAX_ITERATIONS,
+        description="short runs: RGB-only phase at least this long (≤ 1/3 of the run)",
     )
     min_geometry_iterations: int = Field(
-        250, ge=0, description="short runs: single-view phase at least this long (≤ 1/6 of the run)"
+        250,
+        ge=0,
+        le=MAX_ITERATIONS,
+        description="short runs: single-view phase at least this long (≤ 1/6 of the run)",
     )
     geometry_pause_after_reset: int = Field(
         100,
         ge=0,
+        le=MAX_ITERATIONS,
         description="iterations after each opacity reset without L_single and L_multi "
         "(every Gaussian is near-transparent, so the depth they constrain is undefined)",
     )
@@ -57,12 +77,16 @@ class LossWeights(_Strict):
     """Eq. 15–16 weights and the multi-view thresholds."""
 
     l1: float = Field(0.8, ge=0, le=1, description="L_rgb = l1·L1 + (1 - l1)·D-SSIM")
-    scale: float = Field(100.0, ge=0, description="λ2, Eq. 7 (scales measured in scene radii)")
-    single_view: float = Field(0.2, ge=0, description="λ3, Eq. 11")
-    multi_view: float = Field(0.1, ge=0, description="λ4, Eq. 14")
+    scale: float = Field(
+        100.0, ge=0, le=MAX_LOSS_WEIGHT, description="λ2, Eq. 7 (scales measured in scene radii)"
+    )
+    single_view: float = Field(0.2, ge=0, le=MAX_LOSS_WEIGHT, description="λ3, Eq. 11")
+    multi_view: float = Field(0.1, ge=0, le=MAX_LOSS_WEIGHT, description="λ4, Eq. 14")
     multiview_max_angle_deg: float = Field(30.0, gt=0, le=180)
-    multiview_max_error_px: float = Field(1.0, gt=0)
-    multiview_pixels: int = Field(4096, ge=16, description="pixels sampled per multi-view step")
+    multiview_max_error_px: float = Field(1.0, gt=0, le=10_000)
+    multiview_pixels: int = Field(
+        4096, ge=16, le=1 << 24, description="pixels sampled per multi-view step"
+    )
     single_view_edge_aware: bool = Field(
         True, description="weight L_single by PGSR's (1 - image gradient)^2"
     )
@@ -74,30 +98,36 @@ class LossWeights(_Strict):
 class LearningRates(_Strict):
     """Adam learning rates (3DGS defaults); positions scale with the scene radius."""
 
-    means_init: float = Field(1.6e-4, gt=0)
-    means_final: float = Field(1.6e-6, gt=0)
-    sh_dc: float = Field(2.5e-3, gt=0)
-    sh_rest: float = Field(2.5e-3 / 20, gt=0)
-    opacity: float = Field(0.025, gt=0)
-    scales: float = Field(5e-3, gt=0)
-    quats: float = Field(1e-3, gt=0)
-    refl: float = Field(0.01, gt=0)
-    envmap: float = Field(0.01, gt=0)
+    means_init: float = Field(1.6e-4, gt=0, le=MAX_LEARNING_RATE)
+    means_final: float = Field(1.6e-6, gt=0, le=MAX_LEARNING_RATE)
+    sh_dc: float = Field(2.5e-3, gt=0, le=MAX_LEARNING_RATE)
+    sh_rest: float = Field(2.5e-3 / 20, gt=0, le=MAX_LEARNING_RATE)
+    opacity: float = Field(0.025, gt=0, le=MAX_LEARNING_RATE)
+    scales: float = Field(5e-3, gt=0, le=MAX_LEARNING_RATE)
+    quats: float = Field(1e-3, gt=0, le=MAX_LEARNING_RATE)
+    refl: float = Field(0.01, gt=0, le=MAX_LEARNING_RATE)
+    envmap: float = Field(0.01, gt=0, le=MAX_LEARNING_RATE)
 
 
 class Densification(_Strict):
     """3DGS adaptive density control (marks on the 30k schedule)."""
 
     enabled: bool = True
-    start: int = Field(500, ge=0)
-    stop: int = Field(15_000, ge=0)
-    interval: int = Field(100, ge=1)
-    grad_threshold: float = Field(2e-4, gt=0, description="mean view-space gradient, NDC units")
-    percent_dense: float = Field(0.01, gt=0, description="clone below, split above (× radius)")
+    start: int = Field(500, ge=0, le=MAX_ITERATIONS)
+    stop: int = Field(15_000, ge=0, le=MAX_ITERATIONS)
+    interval: int = Field(100, ge=1, le=MAX_ITERATIONS)
+    grad_threshold: float = Field(
+        2e-4, gt=0, le=1, description="mean view-space gradient, NDC units"
+    )
+    percent_dense: float = Field(
+        0.01, gt=0, le=1, description="clone below, split above (× radius)"
+    )
     prune_opacity: float = Field(0.005, ge=0, lt=1)
-    opacity_reset_interval: int = Field(3_000, ge=0, description="0 disables")
-    max_screen_size: float = Field(0.15, gt=0, description="prune when 2D radius > this × image")
-    max_gaussians: int = Field(300_000, ge=1)
+    opacity_reset_interval: int = Field(3_000, ge=0, le=MAX_ITERATIONS, description="0 disables")
+    max_screen_size: float = Field(
+        0.15, gt=0, le=10, description="prune when 2D radius > this × image"
+    )
+    max_gaussians: int = Field(300_000, ge=1, le=MAX_GAUSSIANS)
     absgrad: bool = Field(
         False,
         description="AbsGS: densify on the per-pixel absolute screen gradient (cuda backend "
@@ -116,8 +146,12 @@ class Ablation(_Strict):
 
 
 class Evaluation(_Strict):
-    every: int = Field(0, ge=0, description="iterations between evaluations; 0 = ~20 per run")
-    views: int = Field(4, ge=1, description="held-out views evaluated at each cadence point")
+    every: int = Field(
+        0, ge=0, le=MAX_ITERATIONS, description="iterations between evaluations; 0 = ~20 per run"
+    )
+    views: int = Field(
+        4, ge=1, le=1000, description="held-out views evaluated at each cadence point"
+    )
 
 
 class Outputs(_Strict):
@@ -139,8 +173,8 @@ class Outputs(_Strict):
 class TrainConfig(_Strict):
     """The whole training configuration."""
 
-    iterations: int = Field(30_000, ge=1)
-    seed: int = 0
+    iterations: int = Field(30_000, ge=1, le=MAX_ITERATIONS)
+    seed: int = Field(0, ge=0, le=MAX_SEED)
     device: str = Field("cpu", description="'cpu', 'cuda' or 'cuda:N'")
     backend: Literal["auto", "reference", "cpu", "cuda"] = "auto"
     resolution_scale: float = Field(1.0, gt=0, le=1, description="downscale images on load")
@@ -156,7 +190,12 @@ class TrainConfig(_Strict):
         description="cube face size in texels; auto: the paper's 128 at its focal length "
         "(≈1111 px), scaled with this capture's focal length (see the scene plan)",
     )
-    init_points: int = Field(20_000, ge=1, description="random init when the scene has no cloud")
+    init_points: int = Field(
+        20_000,
+        ge=1,
+        le=MAX_INIT_POINTS,
+        description="random init when the scene has no cloud",
+    )
     init_opacity: float = Field(0.1, gt=0, lt=1)
     init_refl: float = Field(0.05, ge=0, lt=1)
     phases: Phases = Phases()
@@ -166,7 +205,9 @@ class TrainConfig(_Strict):
     ablation: Ablation = Ablation()
     eval: Evaluation = Evaluation()
     outputs: Outputs = Outputs()
-    checkpoint_every: int = Field(0, ge=0, description="iterations; 0 = ~5 per run + phase ends")
+    checkpoint_every: int = Field(
+        0, ge=0, le=MAX_ITERATIONS, description="iterations; 0 = ~5 per run + phase ends"
+    )
     plan_overrides: dict[str, Any] = Field(default_factory=dict)
 
     @field_validator("envmap_resolution")

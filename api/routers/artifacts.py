@@ -20,8 +20,11 @@ from api.routers.jobs import owned_job
 from api.schemas import ArtifactOut
 from api.service.models import Artifact
 from api.service.store import job_run_key
+from api.strict_json import StrictJsonRoute
 
-router = APIRouter(prefix="/jobs/{job_id}/artifacts", tags=["artifacts"])
+router = APIRouter(
+    prefix="/jobs/{job_id}/artifacts", tags=["artifacts"], route_class=StrictJsonRoute
+)
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]
 
 DOWNLOAD_RESPONSES: dict[int | str, dict[str, Any]] = {

@@ -43,9 +43,10 @@ from api.service.db import Database
 from api.service.models import Job, JobState, SceneState, new_id
 from api.service.queue import JobQueue
 from api.service.store import job_key
+from api.strict_json import StrictJsonRoute
 from api.views import job_out
 
-router = APIRouter(prefix="/jobs", tags=["jobs"])
+router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=StrictJsonRoute)
 log = logging.getLogger("glint.api")
 
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]

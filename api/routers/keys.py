@@ -18,8 +18,9 @@ from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep
 from api.problems import ApiError, not_found, responses
 from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me
 from api.service.models import ApiKey
+from api.strict_json import StrictJsonRoute
 
-router = APIRouter(tags=["keys"])
+router = APIRouter(tags=["keys"], route_class=StrictJsonRoute)
 
 
 @router.get(

@@ -22,9 +22,10 @@ from api.routers.jobs import AUTH, JobId, enqueue, job_page, owned_job
 from api.schemas import JobOut, MeshCreate, Page
 from api.service.models import Job, JobKind, JobState, new_id
 from api.service.store import job_run_key
+from api.strict_json import StrictJsonRoute
 from api.views import job_out
 
-router = APIRouter(prefix="/jobs", tags=["meshes"])
+router = APIRouter(prefix="/jobs", tags=["meshes"], route_class=StrictJsonRoute)
 
 CHECKPOINT = "checkpoint.pt"
 OUTPUTS = "outputs.json"

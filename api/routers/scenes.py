@@ -27,11 +27,12 @@ from api.service.db import Database
 from api.service.models import Job, Scene, SceneFile, SceneState, new_id
 from api.service.settings import Settings
 from api.service.store import ArtifactStore, StoreError, scene_files_key, scene_key
+from api.strict_json import StrictJsonRoute
 from api.uploads import Limits, StagedSet, receive_body, receive_multipart, too_large
 from api.validation import validate_scene
 from api.views import scene_out, scene_out_one, scene_totals
 
-router = APIRouter(prefix="/scenes", tags=["scenes"])
+router = APIRouter(prefix="/scenes", tags=["scenes"], route_class=StrictJsonRoute)
 
 SceneId = Annotated[str, Path(max_length=40, description="scene id (scn_...)")]
 AUTH = (401, 404)

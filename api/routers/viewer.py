@@ -22,10 +22,11 @@ from api.problems import responses
 from api.routers.jobs import AUTH, JobId, owned_job
 from api.service.models import Job
 from api.service.store import job_run_key, scene_files_key
+from api.strict_json import StrictJsonRoute
 from api.views import job_out
 from viewer_web import JobView, ViewerService
 
-router = APIRouter(prefix="/jobs", tags=["viewer"])
+router = APIRouter(prefix="/jobs", tags=["viewer"], route_class=StrictJsonRoute)
 
 # The job fields the viewer shows (config and plan stay out: they are large).
 STATUS_FIELDS = (

@@ -16,8 +16,9 @@ from api.deps import PrincipalDep, SessionDep
 from api.problems import responses
 from api.schemas import WorkerOut
 from api.service.models import Job, Worker
+from api.strict_json import StrictJsonRoute
 
-router = APIRouter(prefix="/workers", tags=["workers"])
+router = APIRouter(prefix="/workers", tags=["workers"], route_class=StrictJsonRoute)
 
 
 @router.get(
