@@ -355,11 +355,40 @@ def placed_config(config: dict[str, Any], device: str | None) -> tuple[dict[str,
     return config, f"{why}; this worker trains with 'auto' on {device}"
 
 
+MAX_SKIPPED_FRACTION = 0.5  # a run that skipped more of its steps than this failed
+
+
+def skipped_steps_error(skipped: int, steps: int) -> str | None:
+    """Why a run that skipped most of its steps failed, or None when it trained."""
+    if steps <= 0 or skipped <= steps * MAX_SKIPPED_FRACTION:
+        return None
+    return (
+        f"{skipped} of {steps} steps were skipped (non-finite loss or gradients): the model "
+        "did not train; lower the learning rates or loss weights, or check the scene's images"
+    )
+
+
+def _skipped_steps(last_metrics: dict[str, Any], iteration: int, run_dir: Path) -> tuple[int, int]:
+    """(skipped steps, steps) of a finished run: from its last metrics, or, for a run
+    resumed after it had finished (no step trained this time), from metrics.jsonl."""
+    if "skipped_steps" not in last_metrics:
+        from core.outputs.report import read_metrics
+
+        rows = [r for r in read_metrics(run_dir / "metrics.jsonl") if "skipped_steps" in r]
+        last_metrics = rows[-1] if rows else {}
+    return int(last_metrics.get("skipped_steps") or 0), iteration
+
+
 def _run_training(
     config: dict[str, Any], scene_dir: Path, run_dir: Path, reporter: _JobReporter
 ) -> str:
-    """Train (or resume) into ``run_dir``: its export and mesh phase included."""
+    """Train (or resume) into ``run_dir``: its export and mesh phase included.
+
+    A run whose steps were mostly skipped by the trainer's NaN guard raises: its model
+    is its initial state, and the job fails saying so instead of succeeding.
+    """
     from core.config import config_from_dict
+    from core.errors import GlintError
     from core.training.run import train_scene
 
     cfg = config_from_dict(config, source="job config")
@@ -371,6 +400,10 @@ def _run_training(
         should_stop=reporter.should_stop,
         resume=True,
     )
+    if result.status == "succeeded":
+        why = skipped_steps_error(*_skipped_steps(result.last_metrics, result.iteration, run_dir))
+        if why:
+            raise GlintError(why)
     return result.status
 
 

@@ -13,7 +13,14 @@ from sqlalchemy import select
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Job, JobState, Scene, SceneState, new_id
-from api.service.runner import _JobReporter, claim, json_safe, placed_config, run_job
+from api.service.runner import (
+    _JobReporter,
+    claim,
+    json_safe,
+    placed_config,
+    run_job,
+    skipped_steps_error,
+)
 from api.service.store import job_run_key, scene_files_key
 from tests.api.support import TINY_CONFIG, make_settings
 
@@ -193,4 +200,44 @@ def test_a_cuda_job_on_a_cpu_worker_trains(tmp_path: Path, caplog) -> None:  # t
     run_cfg = json.loads((settings.store_root / job_run_key(jid) / "config.json").read_text())
     assert (run_cfg["device"], run_cfg["backend"]) == ("cpu", "auto")
     assert any("this worker trains with 'auto' on cpu" in r.getMessage() for r in caplog.records)
+    db.dispose()
+
+
+def test_skipped_steps_threshold() -> None:
+    assert skipped_steps_error(0, 500) is None
+    assert skipped_steps_error(250, 500) is None  # half is not "more than half"
+    assert skipped_steps_error(251, 500) is not None
+    assert skipped_steps_error(0, 0) is None
+    msg = skipped_steps_error(412, 500)
+    assert msg is not None
+    assert msg.startswith("412 of 500 steps were skipped (non-finite loss or gradients)")
+
+
+def test_a_run_whose_steps_were_skipped_fails(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The trainer's NaN guard skipped every step: the job fails saying so (also when
+    it is resumed, which trains no step), instead of succeeding with an untrained model."""
+    import torch
+
+    from core.scene.synthetic import write_synthetic_scene
+    from core.training.trainer import Trainer
+
+    monkeypatch.setattr(Trainer, "_gradient_ratios", lambda self: [torch.tensor(float("inf"))])
+    settings = make_settings(tmp_path)
+    db = Database(settings.db_url)
+    upgrade(db.engine)
+    config = {**TINY_CONFIG, "iterations": 6, "outputs": {"mesh": False}}
+    jid = _job(db, config=config)
+    write_synthetic_scene(
+        settings.store_root / scene_files_key(_get(db, jid).scene_id), "sphere", "glossy",
+        n_train=3, n_test=1, size=16,
+    )  # fmt: skip
+    assert run_job(jid, settings, database=db) == JobState.FAILED
+    job = _get(db, jid)
+    assert job.error.startswith("6 of 6 steps were skipped (non-finite loss or gradients)")
+    assert str(settings.store_root) not in job.error
+    with db.write() as s:  # what POST /v1/jobs/{id}/resume does
+        row = s.get(Job, jid)
+        row.state, row.error, row.finished_at = JobState.QUEUED, None, None
+    assert run_job(jid, settings, database=db) == JobState.FAILED
+    assert _get(db, jid).error.startswith("6 of 6 steps were skipped")
     db.dispose()
