@@ -2,8 +2,10 @@
 
 Checks, all before or while bytes are written (never after):
 
-* paths: relative, no ``..``, no absolute or drive paths, no backslashes
-  (:func:`api.paths.clean_relpath`); no duplicates;
+* paths: relative, no ``..``, no absolute or drive paths, no backslashes, no control
+  characters (:func:`api.paths.clean_relpath`); no duplicates; a zip member whose name
+  holds a NUL byte is refused (``zipfile`` would silently cut the name there); ``./``
+  prefixes and the archive's root folder (``.``, what ``tar -C dir .`` writes) are fine;
 * member types: regular files and folders only: no symlinks, hard links, devices,
   FIFOs or sparse files (a link could point out of the scene folder);
 * expansion: declared sizes per file and in total within the scene's budget, the
@@ -17,6 +19,7 @@ pending store write, which the caller commits only when the whole archive passed
 
 from __future__ import annotations
 
+import re
 import stat
 import tarfile
 import zipfile
@@ -27,7 +30,7 @@ from pathlib import Path
 from typing import BinaryIO
 
 from api.paths import UnsafePathError, clean_relpath
-from api.problems import ApiError
+from api.problems import ApiError, FieldError
 from api.service.store import ArtifactStore
 from api.uploads import Staged, StagedSet, too_large
 
@@ -58,8 +61,24 @@ class ArchiveLimits:
     max_path_length: int
 
 
+_CONTROL = re.compile(r"[\x00-\x1f\x7f]")
+
+
+def shown(member: str) -> str:
+    """A member name fit for a message: control characters (NUL...) escaped, bounded."""
+    out = _CONTROL.sub(lambda m: f"\\x{ord(m.group()):02x}", member)
+    return out if len(out) <= 300 else out[:297] + "..."
+
+
 def unsafe(detail: str, member: str) -> ApiError:
-    return ApiError(422, "unsafe-archive", f"archive member '{member}': {detail}")
+    """422 naming the member (in ``detail`` and as the ``file`` of ``errors``)."""
+    name = shown(member)
+    return ApiError(
+        422,
+        "unsafe-archive",
+        f"archive member '{name}': {detail}",
+        errors=[FieldError(field="body", file=name, message=detail)],
+    )
 
 
 def bad_archive(detail: str) -> ApiError:
@@ -85,6 +104,15 @@ class _Budget:
             raise unsafe("appears twice in the archive", name)
         self.seen.add(path)
         return path
+
+    def folder(self, name: str) -> None:
+        """Check a folder member; the archive's root (``.``, ``./``) needs no check."""
+        if all(part in ("", ".") for part in name.split("/")):
+            return
+        try:
+            clean_relpath(name, self.limits.max_path_length)
+        except UnsafePathError as exc:
+            raise unsafe(str(exc), name) from None
 
     def add(self, name: str, size: int, compressed: int | None = None) -> None:
         lim = self.limits
@@ -125,6 +153,8 @@ def _zip_members(zf: zipfile.ZipFile, budget: _Budget) -> Iterator[tuple[zipfile
     out = []
     for info in zf.infolist():
         name = info.filename
+        if "\x00" in info.orig_filename:  # ZipInfo cut the name at the NUL
+            raise unsafe("NUL byte in the name", info.orig_filename)
         if info.flag_bits & 0x1:
             raise unsafe("is encrypted", name)
         mode = info.external_attr >> 16
@@ -133,6 +163,7 @@ def _zip_members(zf: zipfile.ZipFile, budget: _Budget) -> Iterator[tuple[zipfile
             what = "is a symbolic link" if kind == stat.S_IFLNK else "is not a regular file"
             raise unsafe(what, name)
         if info.is_dir():
+            budget.folder(name)
             continue
         path = budget.path(name)
         budget.add(name, info.file_size, info.compress_size)
@@ -170,7 +201,7 @@ def _extract_tar(
                 if m.issym() or m.islnk():
                     raise unsafe(f"is a {'symbolic' if m.issym() else 'hard'} link", m.name)
                 if m.isdir():
-                    budget.path(m.name)
+                    budget.folder(m.name)
                     continue
                 if not m.isreg() or m.issparse():
                     raise unsafe("is not a regular file", m.name)

@@ -61,3 +61,32 @@ def zip_bomb(size: int = 8 << 20) -> bytes:
         for _ in range(size // len(chunk)):
             out.write(chunk)
     return buf.getvalue()
+
+
+def zip_with_nul(name: str = "evil.json\x00.png") -> bytes:
+    """A zip whose second member's name holds a NUL byte (zipfile cannot write one)."""
+    stand_in = name.replace("\x00", "\x01")
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as zf:
+        zf.writestr("transforms_train.json", b"{}")
+        zf.writestr(zipfile.ZipInfo(stand_in), b"{}")
+    # the same length: the local header and the central directory both get the NUL
+    return buf.getvalue().replace(stand_in.encode(), name.encode())
+
+
+def tar_of_folder(files: list[tuple[str, bytes]], mode: str = "w:gz") -> bytes:
+    """What ``tar -C dir -czf - .`` writes: a '.' folder, then './'-prefixed members."""
+    buf = io.BytesIO()
+    with tarfile.open(fileobj=buf, mode=mode) as tf:
+        folders = {"."} | {
+            "./" + "/".join(n.split("/")[:i]) for n, _ in files for i in range(1, n.count("/") + 1)
+        }
+        for folder in sorted(folders):
+            info = tarfile.TarInfo(folder)
+            info.type = tarfile.DIRTYPE
+            tf.addfile(info)
+        for name, data in files:
+            info = tarfile.TarInfo("./" + name)
+            info.size = len(data)
+            tf.addfile(info, io.BytesIO(data))
+    return buf.getvalue()

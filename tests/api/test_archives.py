@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+import subprocess
 import tarfile
 from pathlib import Path
 
@@ -11,7 +13,15 @@ from api.archives import ArchiveLimits, extract_archive
 from api.paths import UnsafePathError, clean_relpath
 from api.problems import ApiError
 from api.service.store import LocalStore
-from tests.api.archives import make_tar, make_zip, tar_with, zip_bomb, zip_with_symlink
+from tests.api.archives import (
+    make_tar,
+    make_zip,
+    tar_of_folder,
+    tar_with,
+    zip_bomb,
+    zip_with_nul,
+    zip_with_symlink,
+)
 
 LIMITS = ArchiveLimits(
     max_files=10, max_file_bytes=1 << 20, max_total_bytes=4 << 20, max_ratio=50, max_path_length=80
@@ -103,3 +113,56 @@ def test_lying_tar_header_is_caught(tmp_path: Path) -> None:
     """A member whose data ends early (truncated archive) is refused, not half-kept."""
     data = make_tar([("a.bin", bytes(100_000))], "w")
     _refused(tmp_path, data[:20_000], 422, "corrupt")
+
+
+def test_nul_in_a_zip_member_name_is_refused_naming_it(tmp_path: Path) -> None:
+    with pytest.raises(ApiError) as err:
+        _extract(tmp_path, zip_with_nul())
+    e = err.value
+    assert (e.status, e.slug) == (422, "unsafe-archive")
+    assert "evil.json\\x00.png" in e.detail and "NUL byte" in e.detail
+    assert e.errors and e.errors[0].file == "evil.json\\x00.png"
+    store_tmp = tmp_path / "store" / "tmp"
+    assert not store_tmp.exists() or not any(store_tmp.iterdir()), "staged files left behind"
+
+
+FOLDER = [("transforms_train.json", b"{}"), ("train/r_0.png", b"png"), ("a/b/c.txt", b"c")]
+
+
+@pytest.mark.parametrize("mode", ["w", "w:gz"])
+def test_tar_of_a_folder_with_dot_members_is_accepted(tmp_path: Path, mode: str) -> None:
+    """``tar -C dir .``: the '.' folder and './' prefixes are normalised away."""
+    staged, _ = _extract(tmp_path, tar_of_folder(FOLDER, mode))
+    assert sorted(f.path for f in staged.files) == sorted(n for n, _ in FOLDER)
+    staged.abort()
+
+
+@pytest.mark.skipif(shutil.which("tar") is None, reason="no tar command")
+def test_the_tar_command_on_a_folder_is_accepted(tmp_path: Path) -> None:
+    src = tmp_path / "scene"
+    for name, data in FOLDER:
+        (src / name).parent.mkdir(parents=True, exist_ok=True)
+        (src / name).write_bytes(data)
+    out = tmp_path / "scene.tgz"
+    subprocess.run(["tar", "-C", str(src), "-czf", str(out), "."], check=True)
+    (tmp_path / "x").mkdir()
+    staged, _ = _extract(tmp_path / "x", out.read_bytes())
+    assert sorted(f.path for f in staged.files) == sorted(n for n, _ in FOLDER)
+    staged.abort()
+
+
+def test_zip_with_dot_prefixes_is_accepted(tmp_path: Path) -> None:
+    staged, _ = _extract(tmp_path, make_zip([("./" + n, d) for n, d in FOLDER]))
+    assert sorted(f.path for f in staged.files) == sorted(n for n, _ in FOLDER)
+    staged.abort()
+
+
+def test_dot_style_archives_still_refuse_escapes(tmp_path: Path) -> None:
+    _refused(tmp_path, tar_of_folder([("../x", b"1")]), 422, "'..' in path")
+    _refused(tmp_path, tar_of_folder([("a/../../x", b"1")]), 422, "'..' in path")
+    _refused(tmp_path, make_tar([("./../x", b"1")]), 422, "'..' in path")
+    _refused(tmp_path, tar_with(tarfile.DIRTYPE, name="./.."), 422, "'..' in path")
+    _refused(tmp_path, tar_with(tarfile.DIRTYPE, name="/etc"), 422, "absolute path")
+    _refused(tmp_path, tar_with(tarfile.SYMTYPE, name="./link", linkname="../../.."), 422, "link")
+    hard = tar_with(tarfile.LNKTYPE, name="./hard", linkname="/etc/passwd")
+    _refused(tmp_path, hard, 422, "link")
