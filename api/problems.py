@@ -18,6 +18,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount
 
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("glint.api")
@@ -36,9 +37,37 @@ TITLES = {
     415: "Unsupported media type",
     416: "Range not satisfiable",
     422: "Unprocessable content",
+    429: "Too many requests",
+    431: "Request header fields too large",
     500: "Internal server error",
+    501: "Not implemented",
     503: "Service unavailable",
 }
+
+# The ``type`` slug of errors raised as plain HTTP exceptions (by Starlette, FastAPI or a
+# mounted app), one per status, so every error carries a stable type.
+STATUS_SLUGS = {
+    400: "bad-request",
+    401: "unauthorized",
+    403: "forbidden",
+    404: "not-found",
+    405: "method-not-allowed",
+    406: "not-acceptable",
+    409: "conflict",
+    411: "length-required",
+    412: "precondition-failed",
+    413: "too-large",
+    414: "uri-too-long",
+    415: "unsupported-media-type",
+    416: "range-not-satisfiable",
+    422: "validation-error",
+    429: "too-many-requests",
+    431: "headers-too-large",
+    500: "internal-error",
+    501: "not-implemented",
+    503: "service-unavailable",
+}
+METHODS = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
 
 
 class FieldError(BaseModel):
@@ -165,20 +194,44 @@ async def _validation(request: Request, exc: Exception) -> JSONResponse:
     return problem_response(request, 422, "validation-error", detail, errors=fields)
 
 
-_HTTP_SLUGS = {404: "not-found", 405: "method-not-allowed", 401: "unauthorized"}
+def allowed_methods(request: Request, also: str = "") -> list[str]:
+    """Every method some route serves at the request's path (for ``Allow``).
+
+    Starlette names only the methods of the first route whose path matched, but one
+    path often has several routes (``GET`` and ``POST /v1/scenes``): each route is
+    asked whether it would take the path with each method. Mounted apps (static files)
+    match any method, so they speak for themselves through ``also`` (their ``Allow``).
+    """
+    methods = {m.strip().upper() for m in also.split(",") if m.strip()}
+    for method in METHODS:
+        scope = {
+            "type": "http",
+            "method": method,
+            "path": request.url.path,
+            "root_path": request.scope.get("root_path", ""),
+            "headers": [],
+            "query_string": b"",
+            "app": request.app,
+        }
+        for route in request.app.router.routes:
+            if not isinstance(route, Mount) and route.matches(scope)[0] == Match.FULL:
+                methods.add(method)
+                break
+    return [m for m in METHODS if m in methods]
 
 
 async def _http(request: Request, exc: Exception) -> JSONResponse:
     assert isinstance(exc, StarletteHTTPException)
     detail = exc.detail if isinstance(exc.detail, str) else None
+    headers = dict(getattr(exc, "headers", None) or {})
     if exc.status_code == 404 and detail == "Not Found":
         detail = f"no route for {request.method} {request.url.path}"
     elif exc.status_code == 405:
-        detail = f"{request.method} is not allowed on {request.url.path}"
-    slug = _HTTP_SLUGS.get(exc.status_code, "http-error")
-    return problem_response(
-        request, exc.status_code, slug, detail, headers=getattr(exc, "headers", None)
-    )
+        allow = allowed_methods(request, headers.pop("Allow", headers.pop("allow", "")))
+        headers["Allow"] = ", ".join(allow)
+        detail = f"{request.method} is not allowed on {request.url.path}; use {headers['Allow']}"
+    slug = STATUS_SLUGS.get(exc.status_code, f"http-{exc.status_code}")
+    return problem_response(request, exc.status_code, slug, detail, headers=headers or None)
 
 
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
