@@ -8,6 +8,7 @@ trained on, at the run's resolution.
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 from core.errors import GlintError
@@ -16,15 +17,24 @@ from core.scene.formats import load_scene
 from core.scene.views import Scene
 
 # Written into a run folder by tools that know the scene a run was trained on
-# (``glint train``, ``glint bench``), so ``glint mesh``/``glint eval`` can find it again.
+# (``glint train``, ``glint bench``, the service's runner), so ``glint mesh``/``glint
+# eval`` can find it again. The path is relative to the run folder: a run folder is an
+# artifact a service hands out, and must not tell where the server keeps its files.
 SCENE_RECORD = "scene.json"
 
 
 def record_scene(run_dir: str | Path, scene_dir: str | Path) -> Path:
-    """Remember which scene folder a run belongs to (absolute path)."""
-    path = Path(run_dir) / SCENE_RECORD
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps({"scene": str(Path(scene_dir).resolve())}, indent=2))
+    """Remember which scene folder a run belongs to, as a path relative to the run
+    (absolute only where there is none: another drive on Windows)."""
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    scene = Path(scene_dir).resolve()
+    try:
+        where = Path(os.path.relpath(scene, run.resolve())).as_posix()
+    except ValueError:
+        where = str(scene)
+    path = run / SCENE_RECORD
+    path.write_text(json.dumps({"scene": where}, indent=2))
     return path
 
 
@@ -35,8 +45,8 @@ def find_run_scene(run_dir: str | Path, scene_dir: str | Path | None = None) -> 
     if scene_dir is not None:
         return Path(scene_dir)
     rec = run / SCENE_RECORD
-    if rec.is_file():
-        return Path(json.loads(rec.read_text())["scene"])
+    if rec.is_file():  # relative to the run (older records: absolute, which joins as is)
+        return (run.resolve() / json.loads(rec.read_text())["scene"]).resolve()
     demo = run.parent / "scene"
     if (demo / "transforms_train.json").is_file():
         return demo

@@ -134,8 +134,23 @@ def test_create_upload_commit_train_download(any_server: LiveServer, scene) -> N
         assert bad.status_code == 416
         assert bad.headers["content-range"] == f"bytes */{ply['size']}"
 
+        # no artifact tells where the server keeps its files
+        assert_no_server_paths(c, srv, list(arts.values()))
+
     # the run folder and the scene live where workers expect them
     files = store_files(srv.settings.store_root)
     assert f"jobs/{job_id}/run/checkpoint.pt" in files
     assert f"scenes/{scene_id}/files/transforms_train.json" in files
     assert not [f for f in files if f.startswith("tmp/")]
+
+
+def assert_no_server_paths(c: httpx.Client, srv: LiveServer, arts: list[dict]) -> None:
+    """Download every artifact; none holds the store's or the data folder's path."""
+    roots = {str(srv.settings.store_root), str(srv.settings.data_dir)}
+    roots |= {str(srv.settings.store_root.resolve()), str(srv.settings.data_dir.resolve())}
+    assert "scene.json" in {a["name"] for a in arts}  # the record that used to leak it
+    for a in arts:
+        r = c.get(a["url"])
+        assert r.status_code == 200, (a["name"], r.status_code)
+        for root in roots:  # text artifacts, and binary ones too (a pickled path is text)
+            assert root.encode() not in r.content, f"{a['name']} holds the server path {root}"
