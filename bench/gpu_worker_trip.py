@@ -111,7 +111,7 @@ def trip(redis_bin: str, device: str, root: Path) -> dict:
                  for p in sorted(scene.rglob("*")) if p.is_file()]  # fmt: skip
         c.post(f"/v1/scenes/{sid}/files", files=files).raise_for_status()
         c.post(f"/v1/scenes/{sid}/commit").raise_for_status()
-        _wait(lambda: c.get("/v1/workers").json(), 120, "the worker to report itself")
+        _wait(lambda: c.get("/v1/workers").json()["items"], 120, "the worker to report itself")
         job = c.post("/v1/jobs", json={"scene_id": sid, "config": JOB_CONFIG}).json()
 
         def done():  # type: ignore[no-untyped-def]
@@ -119,8 +119,9 @@ def trip(redis_bin: str, device: str, root: Path) -> dict:
             return j if j["state"] in ("succeeded", "failed", "cancelled") else None
 
         final = _wait(done, 300, "the job")
-        names = [a["name"] for a in c.get(f"/v1/jobs/{job['id']}/artifacts").json()]
-        workers = c.get("/v1/workers").json()
+        arts = c.get(f"/v1/jobs/{job['id']}/artifacts", params={"limit": 200}).json()
+        names = [a["name"] for a in arts["items"]]
+        workers = c.get("/v1/workers").json()["items"]
         ok = final["state"] == "succeeded" and {
             "checkpoint.pt",
             "point_cloud.ply",

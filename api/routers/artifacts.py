@@ -13,11 +13,12 @@ from fastapi import APIRouter, Path, Request
 from fastapi.responses import Response
 from sqlalchemy import select
 
-from api.deps import PrincipalDep, SessionDep, StoreDep
+from api.deps import PrincipalDep, SessionDep, SettingsDep, StoreDep
+from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
 from api.ranges import file_response
 from api.routers.jobs import owned_job
-from api.schemas import ArtifactOut
+from api.schemas import ArtifactOut, Page
 from api.service.models import Artifact
 from api.service.store import job_run_key
 from api.strict_json import StrictJsonRoute
@@ -50,18 +51,25 @@ def _out(request: Request, job_id: str, a: Artifact) -> ArtifactOut:
 
 @router.get(
     "",
-    response_model=list[ArtifactOut],
+    response_model=Page[ArtifactOut],
     responses=responses(401, 404, 422),
-    summary="List a job's artifacts",
+    summary="List a job's artifacts (by name)",
 )
 def list_artifacts(
-    job_id: JobId, request: Request, principal: PrincipalDep, session: SessionDep
-) -> list[ArtifactOut]:
+    job_id: JobId,
+    request: Request,
+    principal: PrincipalDep,
+    session: SessionDep,
+    settings: SettingsDep,
+    limit: Limit = 50,
+    offset: Offset = 0,
+) -> Page[ArtifactOut]:
     owned_job(session, principal, job_id)
-    rows = session.scalars(
-        select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.name)
-    )
-    return [_out(request, job_id, a) for a in rows]
+    limit = min(limit, settings.page_size_max)
+    query = select(Artifact).where(Artifact.job_id == job_id).order_by(Artifact.name)
+    rows, total = page_rows(session, query, limit, offset)
+    items = [_out(request, job_id, a) for a in rows]
+    return Page[ArtifactOut](items=items, total=total, limit=limit, offset=offset)
 
 
 @router.get(

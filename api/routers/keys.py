@@ -14,9 +14,10 @@ from fastapi import APIRouter, Path, Request, Response
 from sqlalchemy import select, text
 
 from api import auth
-from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep
+from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep
+from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
-from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me
+from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me, Page
 from api.service.models import ApiKey
 from api.strict_json import StrictJsonRoute
 
@@ -47,12 +48,26 @@ def me(principal: PrincipalDep) -> Me:
     return Me(owner=principal.owner, key_id=principal.key_id)
 
 
-@router.get("/keys", response_model=list[KeyOut], responses=responses(401), summary="List my keys")
-def list_keys(principal: PrincipalDep, session: SessionDep) -> list[KeyOut]:
-    rows = session.scalars(
-        select(ApiKey).where(ApiKey.owner == principal.owner).order_by(ApiKey.created_at)
+@router.get(
+    "/keys",
+    response_model=Page[KeyOut],
+    responses=responses(401, 422),
+    summary="List my owner's keys (oldest first)",
+)
+def list_keys(
+    principal: PrincipalDep,
+    session: SessionDep,
+    settings: SettingsDep,
+    limit: Limit = 50,
+    offset: Offset = 0,
+) -> Page[KeyOut]:
+    limit = min(limit, settings.page_size_max)
+    query = (
+        select(ApiKey).where(ApiKey.owner == principal.owner).order_by(ApiKey.created_at, ApiKey.id)
     )
-    return [KeyOut.model_validate(r) for r in rows]
+    rows, total = page_rows(session, query, limit, offset)
+    items = [KeyOut.model_validate(r) for r in rows]
+    return Page[KeyOut](items=items, total=total, limit=limit, offset=offset)
 
 
 @router.post(

@@ -21,6 +21,7 @@ from sqlalchemy.orm import Session
 from api.archives import ARCHIVE_TYPES, ArchiveLimits, extract_archive
 from api.auth import Principal
 from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep, StoreDep
+from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
 from api.schemas import Page, SceneCreate, SceneFileOut, SceneOut, UploadResult
 from api.service.db import Database
@@ -163,15 +164,26 @@ def delete_scene(
     return Response(status_code=204)
 
 
-@router.get("/{scene_id}/files", response_model=list[SceneFileOut], responses=responses(*AUTH, 422))
+@router.get(
+    "/{scene_id}/files",
+    response_model=Page[SceneFileOut],
+    responses=responses(*AUTH, 422),
+    summary="List a scene's files (by path)",
+)
 def list_files(
-    scene_id: SceneId, principal: PrincipalDep, session: SessionDep
-) -> list[SceneFileOut]:
+    scene_id: SceneId,
+    principal: PrincipalDep,
+    session: SessionDep,
+    settings: SettingsDep,
+    limit: Limit = 50,
+    offset: Offset = 0,
+) -> Page[SceneFileOut]:
     owned_scene(session, principal, scene_id)
-    rows = session.scalars(
-        select(SceneFile).where(SceneFile.scene_id == scene_id).order_by(SceneFile.path)
-    )
-    return [SceneFileOut.model_validate(r) for r in rows]
+    limit = min(limit, settings.page_size_max)
+    query = select(SceneFile).where(SceneFile.scene_id == scene_id).order_by(SceneFile.path)
+    rows, total = page_rows(session, query, limit, offset)
+    items = [SceneFileOut.model_validate(r) for r in rows]
+    return Page[SceneFileOut](items=items, total=total, limit=limit, offset=offset)
 
 
 @router.delete(

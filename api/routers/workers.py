@@ -12,9 +12,10 @@ from datetime import UTC, datetime
 from fastapi import APIRouter
 from sqlalchemy import select
 
-from api.deps import PrincipalDep, SessionDep
+from api.deps import PrincipalDep, SessionDep, SettingsDep
+from api.pages import Limit, Offset, page_rows
 from api.problems import responses
-from api.schemas import WorkerOut
+from api.schemas import Page, WorkerOut
 from api.service.models import Job, Worker
 from api.strict_json import StrictJsonRoute
 
@@ -23,19 +24,27 @@ router = APIRouter(prefix="/workers", tags=["workers"], route_class=StrictJsonRo
 
 @router.get(
     "",
-    response_model=list[WorkerOut],
-    responses=responses(401),
+    response_model=Page[WorkerOut],
+    responses=responses(401, 422),
     summary="Alive workers: device, current job, last heartbeat",
 )
-def list_workers(principal: PrincipalDep, session: SessionDep) -> list[WorkerOut]:
+def list_workers(
+    principal: PrincipalDep,
+    session: SessionDep,
+    settings: SettingsDep,
+    limit: Limit = 50,
+    offset: Offset = 0,
+) -> Page[WorkerOut]:
     now = datetime.now(UTC)
-    rows = session.execute(
+    limit = min(limit, settings.page_size_max)
+    query = (
         select(Worker, Job.owner)
         .outerjoin(Job, Job.id == Worker.current_job)
         .where(Worker.expires_at > now)
         .order_by(Worker.id)
-    ).all()
-    return [
+    )
+    rows, total = page_rows(session, query, limit, offset, scalars=False)
+    items = [
         WorkerOut(
             id=w.id,
             host=w.host,
@@ -48,3 +57,4 @@ def list_workers(principal: PrincipalDep, session: SessionDep) -> list[WorkerOut
         )
         for w, owner in rows
     ]
+    return Page[WorkerOut](items=items, total=total, limit=limit, offset=offset)

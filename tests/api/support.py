@@ -190,3 +190,18 @@ def store_files(store_root: Path) -> list[str]:
     return sorted(
         p.relative_to(store_root).as_posix() for p in store_root.rglob("*") if p.is_file()
     )
+
+
+def list_all(client: httpx.Client, path: str, **params: Any) -> list[dict[str, Any]]:
+    """Every item of a list endpoint, following its pages (``items``/``total``/``limit``)."""
+    items: list[dict[str, Any]] = []
+    offset = 0
+    while True:
+        r = client.get(path, params={**params, "limit": 200, "offset": offset})
+        assert r.status_code == 200, (path, r.status_code, r.text)
+        page = r.json()
+        assert set(page) == {"items", "total", "limit", "offset"}, page
+        items += page["items"]
+        offset += page["limit"]
+        if not page["items"] or offset >= page["total"]:
+            return items

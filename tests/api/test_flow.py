@@ -7,7 +7,14 @@ import json
 
 import httpx
 
-from tests.api.support import TINY_CONFIG, LiveServer, multipart, store_files, wait_for
+from tests.api.support import (
+    TINY_CONFIG,
+    LiveServer,
+    list_all,
+    multipart,
+    store_files,
+    wait_for,
+)
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
 
@@ -48,7 +55,7 @@ def test_create_upload_commit_train_download(any_server: LiveServer, scene) -> N
             for name, data in part:
                 assert got[name]["size"] == len(data)
                 assert got[name]["sha256"] == hashlib.sha256(data).hexdigest()
-        listed = c.get(f"/v1/scenes/{scene_id}/files").json()
+        listed = list_all(c, f"/v1/scenes/{scene_id}/files")
         assert [f["path"] for f in listed] == [n for n, _ in scene]
 
         # commit = validate
@@ -94,7 +101,7 @@ def test_create_upload_commit_train_download(any_server: LiveServer, scene) -> N
         assert events[-1] == ("end", {"state": "succeeded"})
 
         # artifacts
-        arts = {a["name"]: a for a in c.get(f"/v1/jobs/{job_id}/artifacts").json()}
+        arts = {a["name"]: a for a in list_all(c, f"/v1/jobs/{job_id}/artifacts")}
         for name in (
             "checkpoint.pt",
             "point_cloud.ply",

@@ -10,7 +10,7 @@ import threading
 import httpx
 import pytest
 
-from tests.api.support import TINY_CONFIG, LiveServer, multipart, wait_for
+from tests.api.support import TINY_CONFIG, LiveServer, list_all, multipart, wait_for
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
 # long enough that the cancel lands mid-run even on a fast machine
@@ -79,7 +79,7 @@ def test_cancel_running_then_resume_continues(server: LiveServer, client, ready_
     assert stopped["state"] == "cancelled", stopped["error"]
     at = stopped["iteration"]
     assert 3 <= at < 200
-    names = [a["name"] for a in client.get(f"/v1/jobs/{job_id}/artifacts").json()]
+    names = [a["name"] for a in list_all(client, f"/v1/jobs/{job_id}/artifacts")]
     assert "checkpoint.pt" in names  # saved on stop: what resume continues from
 
     r = client.post(f"/v1/jobs/{job_id}/resume")

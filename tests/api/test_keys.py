@@ -13,7 +13,7 @@ import httpx
 from api.auth import hash_key
 from api.service.db import Database
 from api.service.models import ApiKey
-from tests.api.support import LiveServer, free_port
+from tests.api.support import LiveServer, free_port, list_all
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -37,7 +37,7 @@ def test_keys_create_list_revoke(server: LiveServer) -> None:
         assert r.status_code == 201
         new = r.json()
         assert new["key"].startswith("glk_") and new["key"].startswith(new["prefix"])
-        listed = c.get("/v1/keys").json()
+        listed = list_all(c, "/v1/keys")
         assert {k["id"] for k in listed} == {me["key_id"], new["id"]}
         assert all("key" not in k and "key_hash" not in k for k in listed)
         # the new key acts for the same owner; revoking it leaves this one working

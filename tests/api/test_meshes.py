@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from tests.api.support import TINY_CONFIG, LiveServer, multipart, wait_for
+from tests.api.support import TINY_CONFIG, LiveServer, list_all, multipart, wait_for
 
 TERMINAL = ("succeeded", "failed", "cancelled")
 
@@ -73,7 +73,7 @@ def test_a_training_job_ends_with_a_coloured_mesh(server: LiveServer, trained) -
         job = c.get(f"/v1/jobs/{job_id}").json()
         assert job["kind"] == "train" and job["plan"]["decisions"]["mesh"]["value"] is True
         assert job["stage"]["name"] == "mesh"
-        arts = {a["name"]: a for a in c.get(f"/v1/jobs/{job_id}/artifacts").json()}
+        arts = {a["name"]: a for a in list_all(c, f"/v1/jobs/{job_id}/artifacts")}
         for name, ctype in (
             ("mesh.ply", "application/x-ply"),
             ("mesh.glb", "model/gltf-binary"),
@@ -99,7 +99,7 @@ def test_mesh_outputs_can_be_switched_off(server: LiveServer, scene) -> None:  #
         cfg = {**TINY_CONFIG, "iterations": 6, "outputs": {"mesh": False}}
         job = _finished(c, c.post("/v1/jobs", json={"scene_id": sid, "config": cfg}).json()["id"])
         assert job["state"] == "succeeded", job["error"]
-        names = {a["name"] for a in c.get(f"/v1/jobs/{job['id']}/artifacts").json()}
+        names = {a["name"] for a in list_all(c, f"/v1/jobs/{job['id']}/artifacts")}
         assert "point_cloud.ply" in names and not {"mesh.ply", "mesh.glb"} & names
         assert job["plan"]["decisions"]["mesh"]["value"] is False
 
@@ -183,7 +183,7 @@ def test_cancelled_extraction_leaves_no_artifact(server: LiveServer, trained) ->
             assert r.json()["state"] == "cancelled"
         finally:
             server.queue.release()
-        assert c.get(f"/v1/jobs/{mesh_job['id']}/artifacts").json() == []
+        assert list_all(c, f"/v1/jobs/{mesh_job['id']}/artifacts") == []
 
 
 def test_a_running_extraction_stops_on_cancel(server: LiveServer, trained, monkeypatch) -> None:  # type: ignore[no-untyped-def]
@@ -208,7 +208,7 @@ def test_a_running_extraction_stops_on_cancel(server: LiveServer, trained, monke
         assert c.post(f"/v1/jobs/{mesh_job['id']}/cancel").status_code == 200
         done = _finished(c, mesh_job["id"])
         assert done["state"] == "cancelled", done
-        assert c.get(f"/v1/jobs/{mesh_job['id']}/artifacts").json() == []
+        assert list_all(c, f"/v1/jobs/{mesh_job['id']}/artifacts") == []
     run = Path(server.settings.store_root) / "jobs" / mesh_job["id"] / "run"
     assert not list(run.glob("mesh*")) and not list(run.glob("*.tmp"))
 

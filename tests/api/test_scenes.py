@@ -7,7 +7,7 @@ import hashlib
 import httpx
 
 from tests.api.archives import make_tar, make_zip
-from tests.api.support import LiveServer, multipart, store_files
+from tests.api.support import LiveServer, list_all, multipart, store_files
 
 
 def _new(client: httpx.Client, name: str = "s") -> str:
@@ -52,14 +52,14 @@ def test_reupload_replaces_and_delete_removes(server: LiveServer, client) -> Non
     assert r.status_code == 201
     assert r.json()["scene"]["file_count"] == 2
     assert r.json()["scene"]["total_bytes"] == len(b"three") + 1
-    files = {f["path"]: f for f in client.get(f"/v1/scenes/{sid}/files").json()}
+    files = {f["path"]: f for f in list_all(client, f"/v1/scenes/{sid}/files")}
     assert files["a.txt"]["sha256"] == hashlib.sha256(b"three").hexdigest()
     stored = server.settings.store_root / "scenes" / sid / "files" / "a.txt"
     assert stored.read_bytes() == b"three"
 
     assert client.delete(f"/v1/scenes/{sid}/files/b.txt").status_code == 204
     assert client.delete(f"/v1/scenes/{sid}/files/b.txt").status_code == 404
-    assert [f["path"] for f in client.get(f"/v1/scenes/{sid}/files").json()] == ["a.txt"]
+    assert [f["path"] for f in list_all(client, f"/v1/scenes/{sid}/files")] == ["a.txt"]
 
     assert client.delete(f"/v1/scenes/{sid}").status_code == 204
     assert client.get(f"/v1/scenes/{sid}").status_code == 404

@@ -286,7 +286,8 @@ def test_compose_processes_run_a_job(
                 raise AssertionError(f"{exc}\n{diagnostics()}") from None
             assert job["state"] == "succeeded", f"{job['error']}\n{diagnostics()}"
 
-            arts = {a["name"]: a for a in c.get(f"/v1/jobs/{job_id}/artifacts").json()}
+            listed = c.get(f"/v1/jobs/{job_id}/artifacts", params={"limit": 200}).json()
+            arts = {a["name"]: a for a in listed["items"]}
             assert "report.md" in arts, sorted(arts)
             report = c.get(arts["report.md"]["url"])
             assert report.status_code == 200 and report.text.strip()

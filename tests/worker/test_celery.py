@@ -14,7 +14,7 @@ import httpx
 import pytest
 
 from api.service.queue import JobQueue
-from tests.api.support import LiveServer, make_settings, wait_for
+from tests.api.support import LiveServer, list_all, make_settings, wait_for
 from tests.worker.flow import job, ready_scene, submit, wait_iteration, wait_state
 from tests.worker.support import RedisServer, WorkerProcess, needs_redis, worker_env
 
@@ -104,13 +104,13 @@ def test_worker_trains_to_success_and_reports_itself(
 ) -> None:
     assert type(server.app.state.queue).__name__ == "CeleryQueue"
     (a,) = workers.ensure("a")
-    listed = wait_for(lambda: client.get("/v1/workers").json(), timeout=10)
+    listed = wait_for(lambda: list_all(client, "/v1/workers"), timeout=10)
     assert [w["id"] for w in listed] == [a.node]
     assert listed[0]["device"] == "cpu" and listed[0]["busy"] is False
 
     job_id = submit(client, scene_id, iterations=20)
     busy = wait_for(
-        lambda: [w for w in client.get("/v1/workers").json() if w["current_job"] == job_id],
+        lambda: [w for w in list_all(client, "/v1/workers") if w["current_job"] == job_id],
         timeout=60,
         every=0.05,
     )
@@ -120,12 +120,12 @@ def test_worker_trains_to_success_and_reports_itself(
     assert done["iteration"] == 20 and done["attempts"] == 1
     assert done["config"]["device"] == "cpu"
 
-    arts = {x["name"]: x for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    arts = {x["name"]: x for x in list_all(client, f"/v1/jobs/{job_id}/artifacts")}
     assert {"checkpoint.pt", "point_cloud.ply", "metrics.jsonl", "report.md"} <= set(arts)
     ply = client.get(arts["point_cloud.ply"]["url"])
     assert ply.status_code == 200 and ply.content.startswith(b"ply")
     assert hashlib.sha256(ply.content).hexdigest() == arts["point_cloud.ply"]["sha256"]
-    wait_for(lambda: client.get("/v1/workers").json()[0]["busy"] is False, timeout=10)
+    wait_for(lambda: list_all(client, "/v1/workers")[0]["busy"] is False, timeout=10)
 
 
 def test_worker_meshes_jobs_and_reextracts_on_request(
@@ -140,7 +140,7 @@ def test_worker_meshes_jobs_and_reextracts_on_request(
     job_id = submit(client, scene_id, iterations=8)
     done = wait_state(client, job_id)
     assert done["state"] == "succeeded", done["error"]
-    names = {x["name"] for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    names = {x["name"] for x in list_all(client, f"/v1/jobs/{job_id}/artifacts")}
     assert {"mesh.ply", "mesh.glb", "mesh.obj", "mesh_preview.png"} <= names
     r = client.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 32, "color": "radiance"})
     assert r.status_code == 201, r.text
@@ -184,7 +184,7 @@ def test_cancel_stops_fast_keeps_checkpoint_and_resume_finishes(
     assert cancelled["state"] == "cancelled" and took < 15
     stopped_at = cancelled["iteration"]
     assert 3 <= stopped_at < 150
-    names = {x["name"] for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()}
+    names = {x["name"] for x in list_all(client, f"/v1/jobs/{job_id}/artifacts")}
     assert "checkpoint.pt" in names  # saved at the cancel, not only at a cadence point
 
     r = client.post(f"/v1/jobs/{job_id}/resume", json={})
@@ -205,7 +205,7 @@ def test_killed_worker_job_resumes_on_another_from_its_checkpoint(
     job_id = submit(client, scene_id, iterations=120, checkpoint_every=10)
     wait_iteration(client, job_id, 12)  # the checkpoint at 10 is written
     holder = wait_for(
-        lambda: [w["id"] for w in client.get("/v1/workers").json() if w["current_job"] == job_id]
+        lambda: [w["id"] for w in list_all(client, "/v1/workers") if w["current_job"] == job_id]
     )[0]
     victim, survivor = (a, b) if holder == a.node else (b, a)
     victim.kill()
@@ -221,9 +221,9 @@ def test_killed_worker_job_resumes_on_another_from_its_checkpoint(
     assert 10 <= resumed < 120 and resumed >= killed_at - 10
     its = _metrics_iterations(server, job_id)
     assert its == sorted(set(its)) and its[-1] == 120  # nothing duplicated, nothing missing
-    names = [x["name"] for x in client.get(f"/v1/jobs/{job_id}/artifacts").json()]
+    names = [x["name"] for x in list_all(client, f"/v1/jobs/{job_id}/artifacts")]
     assert len(names) == len(set(names)) and names.count("checkpoint.pt") == 1
-    wait_for(lambda: victim.node not in {w["id"] for w in client.get("/v1/workers").json()}, 10)
+    wait_for(lambda: victim.node not in {w["id"] for w in list_all(client, "/v1/workers")}, 10)
 
 
 def test_job_survives_a_redis_restart(

@@ -375,6 +375,17 @@
     }
     return r;
   }
+  async function listAll(path) {
+    // every item of a list endpoint: pages of {items, total, limit, offset}
+    const items = [];
+    for (let offset = 0; ; ) {
+      const sep = path.includes("?") ? "&" : "?";
+      const page = await (await api(`${path}${sep}limit=200&offset=${offset}`)).json();
+      items.push(...page.items);
+      offset += page.limit;
+      if (!page.items.length || offset >= page.total) return items;
+    }
+  }
   function downloadLink(id, name) {
     const a = document.createElement("a");
     a.href = "#"; a.textContent = name.replace("mesh.", ""); a.dataset.file = name; a.title = `download ${name}`;
@@ -410,7 +421,7 @@
     clearTimeout(meshTimer);
     const box = $("meshes");
     try {
-      const own = await (await api(`/v1/jobs/${encodeURIComponent(jobId)}/artifacts`)).json();
+      const own = await listAll(`/v1/jobs/${encodeURIComponent(jobId)}/artifacts`);
       const list = await (await api(`/v1/jobs/${encodeURIComponent(jobId)}/meshes?limit=20`)).json();
       box.replaceChildren();
       if (own.some((a) => a.name === "mesh.ply")) {
