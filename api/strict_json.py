@@ -9,7 +9,8 @@ the API is a :class:`StrictJsonRoute`, whose request parses JSON with :func:`loa
 * an integer outside the signed 64-bit range, a float that overflows a double, and
   ``NaN``/``Infinity``/``-Infinity`` answer **422** ``validation-error`` naming the
   field (``body.config.iterations``), before any route code runs;
-* nesting deeper than the parser's recursion limit answers 400 ``malformed-json``.
+* nesting deeper than the parser's recursion limit, and bytes that are not text, answer
+  400 ``malformed-json``.
 """
 
 from __future__ import annotations
@@ -80,6 +81,8 @@ def loads(body: bytes | str) -> Any:
         )
     except RecursionError:
         raise json.JSONDecodeError("nested too deeply", "", 0) from None
+    except UnicodeDecodeError:  # a ValueError FastAPI would answer with a bare 400
+        raise json.JSONDecodeError("not UTF-8 (or UTF-16/32) text", "", 0) from None
     errors = [
         {
             "type": "number_out_of_range",

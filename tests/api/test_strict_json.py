@@ -38,9 +38,11 @@ def test_loads_refuses_numbers_naming_them(body: str, loc: tuple) -> None:
     assert [e["loc"] for e in err.value.errors()] == [loc]
 
 
-def test_loads_deep_nesting_is_a_syntax_error() -> None:
+def test_loads_deep_nesting_and_binary_are_syntax_errors() -> None:
     with pytest.raises(json.JSONDecodeError):
         loads("[" * 200_000 + "]" * 200_000)
+    with pytest.raises(json.JSONDecodeError):
+        loads(b"\x83\xff{}")
 
 
 def test_every_api_route_parses_strictly() -> None:
@@ -104,4 +106,7 @@ def test_huge_numbers_in_other_bodies(server: LiveServer) -> None:
     r = _post(server, key, "/v1/jobs/job_x/meshes", '{"resolution": 99999999999999999999999}')
     assert r.status_code == 422 and r.json()["errors"][0]["field"] == "body.resolution"
     r = _post(server, key, "/v1/keys", "[" * 100_000 + "]" * 100_000)
+    assert r.status_code == 400 and r.json()["type"] == "urn:glint:problem:malformed-json"
+    with server.client(key) as c:
+        r = c.post("/v1/keys", content=b"\x83\xff", headers={"Content-Type": "application/json"})
     assert r.status_code == 400 and r.json()["type"] == "urn:glint:problem:malformed-json"
