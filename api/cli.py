@@ -1,4 +1,4 @@
-"""``glint serve`` and ``glint keys create``: the service's commands in the glint CLI.
+"""``glint serve`` and ``glint keys create|list|revoke``: the service's commands in the glint CLI.
 
 Loaded by ``core.cli`` through the ``glint.commands`` entry point, so ``core`` never
 imports ``api``. Heavy imports happen inside the handlers: ``glint --help`` stays fast.
@@ -11,6 +11,8 @@ import sys
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
+    from datetime import datetime
+
     from api.service.settings import Settings
 
 
@@ -44,24 +46,93 @@ def _cmd_serve(args: argparse.Namespace) -> int:
     return 0
 
 
-def _cmd_keys_create(args: argparse.Namespace) -> int:
-    from api.auth import create_key
+def _keys_database(args: argparse.Namespace):  # type: ignore[no-untyped-def]
     from api.service.db import Database
     from api.service.migrate import upgrade
 
-    settings = _settings(args)
-    database = Database(settings.db_url)
+    database = Database(_settings(args).db_url)
+    upgrade(database.engine)
+    return database
+
+
+def _cmd_keys_create(args: argparse.Namespace) -> int:
+    from api.auth import create_key
+
+    database = _keys_database(args)
     try:
-        upgrade(database.engine)
         with database.write() as s:
-            row, key = create_key(s, owner=args.name, name=args.label)
+            row, key = create_key(s, owner=args.name, name=args.label, scope=args.scope)
     finally:
         database.dispose()
     print(key)
     print(
-        f"(key {row.id} for owner '{row.owner}'; it is shown only now: store it safely)",
+        f"(key {row.id}, scope {row.scope}, for owner '{row.owner}'; it is shown only now: "
+        "store it safely)",
         file=sys.stderr,
     )
+    return 0
+
+
+def _when(value: datetime | None) -> str:
+    return value.strftime("%Y-%m-%d %H:%M:%S") if value is not None else "-"
+
+
+def _cmd_keys_list(args: argparse.Namespace) -> int:
+    from sqlalchemy import select
+
+    from api.service.models import ApiKey
+
+    database = _keys_database(args)
+    try:
+        with database.read() as s:
+            q = select(ApiKey).order_by(ApiKey.owner, ApiKey.created_at, ApiKey.id)
+            if args.owner:
+                q = q.where(ApiKey.owner == args.owner)
+            if not args.all:
+                q = q.where(ApiKey.revoked_at.is_(None))
+            rows = list(s.scalars(q))
+    finally:
+        database.dispose()
+    head = ("id", "owner", "name", "scope", "prefix", "created", "last used", "revoked")
+    table = [head] + [
+        (
+            r.id,
+            r.owner,
+            r.name,
+            r.scope,
+            r.prefix,
+            _when(r.created_at),
+            _when(r.last_used_at),
+            _when(r.revoked_at),
+        )
+        for r in rows
+    ]
+    widths = [max(len(str(row[i])) for row in table) for i in range(len(head))]
+    for row in table:
+        print("  ".join(str(v).ljust(w) for v, w in zip(row, widths, strict=True)).rstrip())
+    return 0
+
+
+def _cmd_keys_revoke(args: argparse.Namespace) -> int:
+    from datetime import UTC, datetime
+
+    from api.service.models import ApiKey
+    from core.errors import GlintError
+
+    database = _keys_database(args)
+    try:
+        with database.write() as s:
+            row = s.get(ApiKey, args.key_id)
+            if row is None:
+                raise GlintError(f"no key '{args.key_id}' (see glint keys list)")
+            already = row.revoked_at is not None
+            if not already:
+                row.revoked_at = datetime.now(UTC)
+            owner = row.owner
+    finally:
+        database.dispose()
+    what = "was already revoked" if already else "revoked: it fails from the next request on"
+    print(f"key {args.key_id} of owner '{owner}' {what}")
     return 0
 
 
@@ -97,5 +168,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     k.add_argument("name", metavar="NAME", help="owner name")
     k.add_argument("--label", help="label of this key (default: NAME)")
+    k.add_argument(
+        "--scope",
+        choices=["read", "write", "admin"],
+        default="admin",
+        help="what the key may do: read (GET only), write (also change scenes and jobs), "
+        "admin (also create and revoke keys through the API); default admin",
+    )
     _add_common(k)
     k.set_defaults(func=_cmd_keys_create)
+
+    k = keys_sub.add_parser(
+        "list",
+        help="list API keys (id, owner, name, scope, created, last used)",
+        description="Lists live keys (--all: revoked ones too), of every owner or of OWNER. "
+        "The keys themselves are not stored and cannot be shown.",
+    )
+    k.add_argument("owner", metavar="OWNER", nargs="?", help="only this owner's keys")
+    k.add_argument("--all", action="store_true", help="revoked keys too")
+    _add_common(k)
+    k.set_defaults(func=_cmd_keys_list)
+
+    k = keys_sub.add_parser(
+        "revoke",
+        help="revoke an API key by id (it fails from the next request on)",
+        description="Revokes key KEY_ID (key_..., see glint keys list) of any owner; "
+        "the API refuses it from the next request on, on every replica.",
+    )
+    k.add_argument("key_id", metavar="KEY_ID", help="the key's id (key_...)")
+    _add_common(k)
+    k.set_defaults(func=_cmd_keys_revoke)

@@ -6,6 +6,7 @@ kept on ``app.state``; tests swap any of them by building the app with others.
 
 from __future__ import annotations
 
+import logging
 from collections.abc import AsyncIterator
 from typing import Annotated
 
@@ -16,14 +17,16 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
 
 from api import auth
-from api.problems import ApiError
+from api.problems import ApiError, FieldError
 from api.service.db import Database
 from api.service.queue import JobQueue
 from api.service.settings import Settings
 from api.service.store import ArtifactStore
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `glint keys create`")
+SCOPE_EXTRA = "x-glint-scope"  # openapi_extra key: the scope a route needs (see required_scope)
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
+log = logging.getLogger("glint.api")
 _CLEANUP = anyio.CapacityLimiter(16)  # session cleanups never wait behind route threads
 
 
@@ -67,16 +70,40 @@ async def get_db(request: Request) -> AsyncIterator[Session]:
             session.close()  # ends a read transaction: no writes, no waiting on locks
 
 
-def _lookup(database: Database, key: str) -> auth.Principal | None:
+def _lookup(database: Database, key: str, last_used_every_s: float) -> auth.Principal | None:
+    """The key's principal (one indexed read); marks it used when that is due."""
     with database.read() as session:
-        return auth.lookup(session, key)
+        record = auth.lookup(session, key)
+    if record is None:
+        return None
+    if auth.due(record, last_used_every_s):
+        try:
+            with database.write() as session:
+                auth.touch(session, record.principal.key_id, last_used_every_s)
+        except Exception:  # a busy database must not fail the request over a timestamp
+            log.warning("could not record the use of key %s", record.principal.key_id)
+    return record.principal
+
+
+def required_scope(request: Request) -> str:
+    """The scope a route needs: its ``x-glint-scope``, else ``read`` for GET/HEAD/OPTIONS
+    and ``write`` for every other method (a new route that changes state is guarded
+    without saying so)."""
+    route = request.scope.get("route")
+    declared = (getattr(route, "openapi_extra", None) or {}).get(SCOPE_EXTRA)
+    if declared:
+        return str(declared)
+    return "read" if request.method in _SAFE_METHODS else "write"
 
 
 async def get_principal(
     request: Request,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
 ) -> auth.Principal:
-    """The caller, from ``Authorization: Bearer <key>`` (cached briefly, see PrincipalCache)."""
+    """The caller, from ``Authorization: Bearer <key>``, checked against the route's scope.
+
+    Every request looks its key up: a revoked key fails at once, on every replica.
+    """
     challenge = {"WWW-Authenticate": 'Bearer realm="glint"'}
     if credentials is None:
         raise ApiError(
@@ -85,16 +112,28 @@ async def get_principal(
             "missing API key: send 'Authorization: Bearer <key>'",
             headers=challenge,
         )
-    cache: auth.PrincipalCache = request.app.state.principals
-    digest = auth.hash_key(credentials.credentials)
-    principal = cache.get(digest)
+    database: Database = request.app.state.database
+    settings: Settings = request.app.state.settings
+    principal = await run_in_threadpool(
+        _lookup, database, credentials.credentials, settings.key_last_used_s
+    )
     if principal is None:
-        database: Database = request.app.state.database
-        principal = await run_in_threadpool(_lookup, database, credentials.credentials)
-        if principal is None:
-            raise ApiError(401, "unauthorized", "invalid or revoked API key", headers=challenge)
-        cache.put(digest, principal)
+        raise ApiError(401, "unauthorized", "invalid or revoked API key", headers=challenge)
+    needed = required_scope(request)
+    if not auth.allows(principal.scope, needed):
+        raise forbidden(principal, needed, f"{request.method} {request.url.path}")
     return principal
+
+
+def forbidden(principal: auth.Principal, needed: str, what: str) -> ApiError:
+    """403: the key is valid, its scope too narrow for ``what``."""
+    message = f"needs a key with scope '{needed}'; this key's scope is '{principal.scope}'"
+    return ApiError(
+        403,
+        "insufficient-scope",
+        f"{what} {message}",
+        errors=[FieldError(field="header.authorization", message=message)],
+    )
 
 
 async def require_json(

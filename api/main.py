@@ -15,7 +15,7 @@ from fastapi.openapi.utils import get_openapi
 from sqlalchemy import update
 
 import viewer_web
-from api.auth import PrincipalCache
+from api.deps import SCOPE_EXTRA
 from api.problems import PROBLEM_JSON, install_handlers
 from api.routers import artifacts, jobs, keys, meshes, scenes, viewer, workers
 from api.service.db import Database
@@ -59,7 +59,14 @@ def _tidy_openapi(app: FastAPI) -> dict[str, Any]:
         tags=app.openapi_tags,
     )
     for path_item in schema.get("paths", {}).values():
-        for op in path_item.values():
+        for method, op in path_item.items():
+            if op.get("security"):  # every key-guarded operation says which scope it needs
+                safe = method.upper() in ("GET", "HEAD", "OPTIONS")
+                scope = op.setdefault(SCOPE_EXTRA, "read" if safe else "write")
+                if scope != "read":
+                    op["responses"].setdefault(
+                        "403", {"description": f"The key's scope is not '{scope}' or wider"}
+                    )
             for code, resp in op.get("responses", {}).items():
                 content = resp.get("content", {})
                 if code.startswith(("4", "5")):
@@ -118,7 +125,6 @@ def create_app(
     )
     app.state.settings = settings
     app.state.validation_slots = threading.BoundedSemaphore(settings.validation_concurrency)
-    app.state.principals = PrincipalCache(settings.auth_cache_s)
     install_handlers(app)
     app.add_middleware(ServerTimingMiddleware)
     for router in ROUTERS:

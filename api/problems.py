@@ -251,6 +251,7 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
     descriptions = {
         400: "Malformed request (e.g. JSON syntax)",
         401: "Missing or invalid API key",
+        403: "The key's scope does not allow it",
         404: "Not found (or owned by another key's owner)",
         409: "Conflicts with the resource's state",
         413: "Upload larger than the configured limits",

@@ -33,14 +33,24 @@ class Health(BaseModel):
     version: str
 
 
+ScopeName = Literal["read", "write", "admin"]
+SCOPE_HELP = (
+    "'read': GET requests and viewer tokens; 'write': also everything that changes "
+    "scenes and jobs; 'admin': also creating keys and revoking other keys"
+)
+
+
 class Me(BaseModel):
     owner: str
     key_id: str
+    name: str
+    scope: ScopeName = Field(description=SCOPE_HELP)
 
 
 class KeyCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     name: str = Field(min_length=1, max_length=100, pattern=NAME_PATTERN)
+    scope: ScopeName = Field("write", description=SCOPE_HELP)
 
 
 class KeyOut(BaseModel):
@@ -49,7 +59,11 @@ class KeyOut(BaseModel):
     owner: str
     name: str
     prefix: str = Field(description="first characters of the key, to recognise it")
+    scope: ScopeName = Field(description=SCOPE_HELP)
     created_at: datetime
+    last_used_at: datetime | None = Field(
+        description="last request made with the key (to within GLINT_KEY_LAST_USED_S)"
+    )
     revoked_at: datetime | None
 
 

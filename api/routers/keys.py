@@ -1,8 +1,9 @@
 """Health (no key needed) and API keys: who am I, list, create another, revoke.
 
 Keys are created on the command line (``glint keys create NAME``) for a new owner;
-an owner holding a key can mint more for itself here (to rotate without downtime)
-and revoke them. A new key's secret appears once, in the creation response.
+an owner's ``admin`` key can mint more here (to rotate without downtime, or to hand out
+``read``-only keys) and revoke any key of the owner. Any key may revoke itself. A new
+key's secret appears once, in the creation response. Scopes: see :mod:`api.auth`.
 """
 
 from __future__ import annotations
@@ -14,7 +15,15 @@ from fastapi import APIRouter, Path, Request, Response
 from sqlalchemy import select, text
 
 from api import auth
-from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep
+from api.deps import (
+    SCOPE_EXTRA,
+    DatabaseDep,
+    JsonBody,
+    PrincipalDep,
+    SessionDep,
+    SettingsDep,
+    forbidden,
+)
 from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
 from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me, Page
@@ -43,9 +52,16 @@ def health(database: DatabaseDep) -> Health:
     return Health(status="ok", database="ok", version=__version__)
 
 
-@router.get("/keys/me", response_model=Me, responses=responses(401), summary="The caller's owner")
+@router.get(
+    "/keys/me", response_model=Me, responses=responses(401), summary="The caller's owner and key"
+)
 def me(principal: PrincipalDep) -> Me:
-    return Me(owner=principal.owner, key_id=principal.key_id)
+    return Me(
+        owner=principal.owner,
+        key_id=principal.key_id,
+        name=principal.name,
+        scope=principal.scope,  # type: ignore[arg-type]
+    )
 
 
 @router.get(
@@ -74,12 +90,13 @@ def list_keys(
     "/keys",
     status_code=201,
     response_model=KeyCreated,
-    responses=responses(400, 401, 415, 422),
+    responses=responses(400, 401, 403, 415, 422),
     dependencies=[JsonBody],
-    summary="Create another key for my owner (the key is shown once)",
+    openapi_extra={SCOPE_EXTRA: "admin"},
+    summary="Create another key for my owner (admin keys only; the key is shown once)",
 )
 def create_key(body: KeyCreate, principal: PrincipalDep, session: SessionDep) -> KeyCreated:
-    row, key = auth.create_key(session, principal.owner, body.name)
+    row, key = auth.create_key(session, principal.owner, body.name, body.scope)
     session.commit()
     return KeyCreated(**KeyOut.model_validate(row).model_dump(), key=key)
 
@@ -88,8 +105,9 @@ def create_key(body: KeyCreate, principal: PrincipalDep, session: SessionDep) ->
     "/keys/{key_id}",
     status_code=204,
     response_class=Response,
-    responses=responses(401, 404, 422),
-    summary="Revoke one of my keys (may be the one in use)",
+    responses=responses(401, 403, 404, 422),
+    openapi_extra={SCOPE_EXTRA: "read"},  # any key may revoke itself; others: admin
+    summary="Revoke a key of my owner: the one in use (any key), or another (admin keys)",
 )
 def revoke_key(
     key_id: Annotated[str, Path(max_length=40)],
@@ -100,8 +118,9 @@ def revoke_key(
     row = session.scalar(select(ApiKey).where(ApiKey.id == key_id, ApiKey.owner == principal.owner))
     if row is None:
         raise not_found("key", key_id)
+    if key_id != principal.key_id and not auth.allows(principal.scope, "admin"):
+        raise forbidden(principal, "admin", f"revoking key '{key_id}' (not the one in use)")
     if row.revoked_at is None:
         row.revoked_at = datetime.now(UTC)
         session.commit()
-    request.app.state.principals.forget(key_id)
     return Response(status_code=204)

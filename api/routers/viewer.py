@@ -17,7 +17,7 @@ from fastapi import APIRouter, FastAPI, Request
 from pydantic import BaseModel, Field
 from sqlalchemy import select
 
-from api.deps import PrincipalDep, SessionDep
+from api.deps import SCOPE_EXTRA, PrincipalDep, SessionDep
 from api.problems import responses
 from api.routers.jobs import AUTH, JobId, owned_job
 from api.service.models import Job
@@ -91,6 +91,7 @@ def make_service(app: FastAPI) -> ViewerService:
     "/{job_id}/viewer-token",
     response_model=ViewerTokenOut,
     responses=responses(*AUTH, 422),
+    openapi_extra={SCOPE_EXTRA: "read"},  # a POST that changes nothing: viewing is reading
     summary="Get a short-lived token for the browser viewer of a job",
 )
 def viewer_token(

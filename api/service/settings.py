@@ -86,11 +86,11 @@ class Settings(BaseSettings):
         "--prebuild DIR` (the API image sets it); tried before compiling",
     )
 
-    auth_cache_s: float = Field(
-        5.0,
+    key_last_used_s: float = Field(
+        60.0,
         ge=0,
-        description="remember a valid key this long (revocations on other "
-        "replicas take effect within it); 0 = look every key up",
+        description="an API key's last_used_at is written at most this often (keys are "
+        "looked up on every request, so a revocation takes effect at once); 0 = every request",
     )
 
     # --- uploads -------------------------------------------------------------------

@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 import time
+from datetime import UTC, datetime
 from pathlib import Path
 
 import httpx
@@ -13,7 +14,7 @@ import httpx
 from api.auth import hash_key
 from api.service.db import Database
 from api.service.models import ApiKey
-from tests.api.support import LiveServer, free_port, list_all
+from tests.api.support import LiveServer, free_port, list_all, multipart
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -98,3 +99,116 @@ def test_cli_keys_create_and_serve(tmp_path: Path) -> None:
         server.terminate()
         server.wait(30)
     assert (tmp_path / "store").is_dir()
+
+
+def _problem(r: httpx.Response, status: int, slug: str) -> dict:
+    assert r.status_code == status, r.text
+    assert r.headers["content-type"] == "application/problem+json"
+    body = r.json()
+    assert body["type"] == f"urn:glint:problem:{slug}", body
+    return body
+
+
+def test_scopes(server: LiveServer) -> None:
+    admin_key = server.new_key("scoped")  # what glint keys create makes: an admin key
+    with server.client(admin_key) as admin:
+        me = admin.get("/v1/keys/me").json()
+        assert (me["scope"], me["name"]) == ("admin", "scoped")
+        made = {
+            scope: admin.post("/v1/keys", json={"name": scope, "scope": scope}).json()
+            for scope in ("read", "write")
+        }
+        assert admin.post("/v1/keys", json={"name": "default"}).json()["scope"] == "write"
+        sid = admin.post("/v1/scenes", json={"name": "theirs"}).json()["id"]
+    reader = server.client(made["read"]["key"])
+    writer = server.client(made["write"]["key"])
+    try:
+        # read: every GET, and viewing
+        assert reader.get("/v1/keys/me").json()["scope"] == "read"
+        assert reader.get(f"/v1/scenes/{sid}").status_code == 200
+        assert reader.get("/v1/jobs").status_code == 200
+        assert reader.post("/v1/jobs/job_x/viewer-token").status_code == 404  # not 403
+        # ... and no write: 403 naming the scope needed, nothing changed
+        before = reader.get("/v1/scenes").json()["total"]
+        for r in (
+            reader.post("/v1/scenes", json={"name": "nope"}),
+            reader.delete(f"/v1/scenes/{sid}"),
+            reader.post("/v1/jobs", json={"scene_id": sid}),
+            reader.post(f"/v1/scenes/{sid}/files", files=multipart([("a.txt", b"x")])),
+        ):
+            body = _problem(r, 403, "insufficient-scope")
+            assert "needs a key with scope 'write'" in body["detail"]
+            assert body["errors"][0]["field"] == "header.authorization"
+        assert reader.get("/v1/scenes").json()["total"] == before
+        assert reader.get(f"/v1/scenes/{sid}/files").json()["total"] == 0
+        # write: changes scenes, but makes no keys and revokes no other key
+        assert writer.post("/v1/scenes", json={"name": "mine"}).status_code == 201
+        _problem(writer.post("/v1/keys", json={"name": "x"}), 403, "insufficient-scope")
+        r = writer.delete(f"/v1/keys/{made['read']['id']}")
+        assert "needs a key with scope 'admin'" in _problem(r, 403, "insufficient-scope")["detail"]
+        _problem(reader.delete(f"/v1/keys/{me['key_id']}"), 403, "insufficient-scope")
+        # any key revokes itself; an admin key revokes others; either fails at once
+        assert reader.delete(f"/v1/keys/{made['read']['id']}").status_code == 204
+        _problem(reader.get("/v1/keys/me"), 401, "unauthorized")
+        with server.client(admin_key) as admin:
+            assert admin.delete(f"/v1/keys/{made['write']['id']}").status_code == 204
+        _problem(writer.get("/v1/keys/me"), 401, "unauthorized")
+    finally:
+        reader.close()
+        writer.close()
+
+
+def test_a_revocation_elsewhere_takes_effect_at_once(server: LiveServer) -> None:
+    """Revoked by another replica or the CLI (straight in the database): no cache window."""
+    key = server.new_key("elsewhere")
+    with server.client(key) as c:
+        key_id = c.get("/v1/keys/me").json()["key_id"]
+        assert c.get("/v1/scenes").status_code == 200
+        with server.database.write() as s:
+            s.get(ApiKey, key_id).revoked_at = datetime.now(UTC)
+        _problem(c.get("/v1/scenes"), 401, "unauthorized")
+
+
+def test_keys_show_name_scope_and_last_use(server: LiveServer) -> None:
+    key = server.new_key("seen")
+    with server.client(key) as c:
+        c.post("/v1/keys", json={"name": "spare", "scope": "read"})
+        listed = {k["name"]: k for k in list_all(c, "/v1/keys")}
+    assert set(listed) == {"seen", "spare"}
+    assert listed["spare"]["last_used_at"] is None and listed["spare"]["scope"] == "read"
+    used = listed["seen"]["last_used_at"]
+    assert used is not None and listed["seen"]["scope"] == "admin"
+    assert {"created_at", "revoked_at", "prefix"} <= set(listed["seen"])
+    with server.client(key) as c:  # within GLINT_KEY_LAST_USED_S: not written again
+        c.get("/v1/keys/me")
+        again = {k["name"]: k for k in list_all(c, "/v1/keys")}
+    assert again["seen"]["last_used_at"] == used
+
+
+def test_cli_keys_list_and_revoke(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from core.cli import main
+
+    common = ["--data-dir", str(tmp_path)]
+    assert main(["keys", "create", "carol", "--scope", "read", "--label", "dash", *common]) == 0
+    key = capsys.readouterr().out.strip()
+    assert main(["keys", "create", "dave", *common]) == 0
+    capsys.readouterr()
+    assert main(["keys", "list", *common]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0].split()[:4] == ["id", "owner", "name", "scope"]
+    rows = {line.split()[1]: line.split() for line in lines[1:]}
+    assert rows["carol"][2:4] == ["dash", "read"] and rows["dave"][3] == "admin"
+    key_id = rows["carol"][0]
+    assert main(["keys", "revoke", key_id, *common]) == 0
+    assert "revoked" in capsys.readouterr().out
+    assert main(["keys", "list", "carol", *common]) == 0
+    assert key_id not in capsys.readouterr().out  # live keys only
+    assert main(["keys", "list", "carol", "--all", *common]) == 0
+    assert key_id in capsys.readouterr().out
+    assert main(["keys", "revoke", "key_nope", *common]) == 2
+    assert "no key 'key_nope'" in capsys.readouterr().err
+    db = Database(f"sqlite:///{tmp_path / 'glint.db'}")
+    with db.read() as s:
+        row = s.query(ApiKey).filter_by(key_hash=hash_key(key)).one()
+        assert row.revoked_at is not None and row.scope == "read"
+    db.dispose()
