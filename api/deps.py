@@ -106,23 +106,28 @@ async def get_principal(
     """
     challenge = {"WWW-Authenticate": 'Bearer realm="glint"'}
     if credentials is None:
-        raise ApiError(
-            401,
-            "unauthorized",
-            "missing API key: send 'Authorization: Bearer <key>'",
-            headers=challenge,
-        )
+        raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'", challenge)
     database: Database = request.app.state.database
     settings: Settings = request.app.state.settings
     principal = await run_in_threadpool(
         _lookup, database, credentials.credentials, settings.key_last_used_s
     )
     if principal is None:
-        raise ApiError(401, "unauthorized", "invalid or revoked API key", headers=challenge)
+        raise _unauthorized("invalid or revoked API key", challenge)
     needed = required_scope(request)
     if not auth.allows(principal.scope, needed):
         raise forbidden(principal, needed, f"{request.method} {request.url.path}")
     return principal
+
+
+def _unauthorized(detail: str, headers: dict[str, str]) -> ApiError:
+    return ApiError(
+        401,
+        "unauthorized",
+        detail,
+        errors=[FieldError(field="header.authorization", message=detail)],
+        headers=headers,
+    )
 
 
 def forbidden(principal: auth.Principal, needed: str, what: str) -> ApiError:
