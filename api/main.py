@@ -23,6 +23,7 @@ from api.service.migrate import upgrade
 from api.service.models import Scene, SceneState
 from api.service.queue import JobQueue, LocalQueue, make_queue
 from api.service.recovery import requeue_orphans
+from api.service.scene_records import relativise_scene_records
 from api.service.settings import Settings, apply_to_core, get_settings
 from api.service.store import ArtifactStore, LocalStore
 from api.timing import ServerTimingMiddleware
@@ -102,6 +103,7 @@ def create_app(
         app.state.store = store or LocalStore(settings.store_root)
         if isinstance(app.state.store, LocalStore):
             app.state.store.sweep_tmp()
+            relativise_scene_records(database, app.state.store.root)
         app.state.queue = queue or make_queue(settings)
         _recover(database, app.state.queue, settings)
         try:
