@@ -61,3 +61,20 @@ def test_success_responses_have_models(spec: dict) -> None:
     job = spec["components"]["schemas"]["JobOut"]["properties"]
     for field in ("state", "phase", "iteration", "progress", "metrics", "n_gaussians", "eta_s"):
         assert field in job
+
+
+def test_every_guarded_operation_says_its_scope(spec: dict) -> None:
+    scopes = {}
+    for method, path, op in _operations(spec):
+        if path == "/v1/health":
+            continue
+        scope = op["x-glint-scope"]
+        scopes[(method, path)] = scope
+        if method == "GET":
+            assert scope == "read", (method, path)
+        if scope != "read" or path == "/v1/keys/{key_id}":
+            assert "403" in op["responses"], (method, path)
+    assert scopes[("POST", "/v1/keys")] == "admin"
+    assert scopes[("POST", "/v1/jobs")] == scopes[("DELETE", "/v1/scenes/{scene_id}")] == "write"
+    assert scopes[("POST", "/v1/jobs/{job_id}/viewer-token")] == "read"
+    assert scopes[("DELETE", "/v1/keys/{key_id}")] == "read"  # itself; others need admin
