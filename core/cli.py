@@ -74,6 +74,13 @@ def _train_config(args: argparse.Namespace, defaults: dict | None = None):
     overrides = dict(defaults or {})
     if args.iterations is not None:
         overrides["iterations"] = args.iterations
+    if getattr(args, "time", None) is not None:
+        from core.config import parse_duration
+
+        try:
+            overrides["time_budget"] = parse_duration(args.time)
+        except ValueError as exc:
+            raise GlintError(f"--time: {exc}") from None
     if args.device is not None:
         overrides["device"] = args.device
     if getattr(args, "backend", None) is not None:
@@ -86,6 +93,7 @@ def _print_summary(out, result, summary) -> None:
     print(
         f"status: {result.status} at iteration {result.iteration} "
         f"({result.train_seconds:.1f} s of training)"
+        + (", time budget spent" if result.stopped_by == "time" else "")
     )
     m = result.last_metrics
     if m:
@@ -109,6 +117,12 @@ def _print_summary(out, result, summary) -> None:
 def _add_train_args(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", help="YAML or JSON training config")
     p.add_argument("--iterations", type=int, help="total iterations (phase marks scale with it)")
+    p.add_argument(
+        "--time",
+        metavar="DURATION",
+        help="time budget, e.g. 90s, 5m, 1h: the phases are fitted to it and the run ends "
+        "with complete outputs when it is spent (with --iterations: whichever comes first)",
+    )
     p.add_argument("--device", help="cpu or cuda")
     p.add_argument("--backend", choices=["auto", "reference", "cpu", "cuda"])
     p.add_argument(
@@ -313,10 +327,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     from core.benchmark.runner import run_bench
 
     _set_threads(args.threads)
+    from core.config import parse_duration
+
+    if args.budget is None and args.time is None:
+        raise GlintError("give --budget ITERATIONS, --time DURATION, or both")
+    try:
+        time_budget = None if args.time is None else parse_duration(args.time)
+    except ValueError as exc:
+        raise GlintError(f"--time: {exc}") from None
     path = run_bench(
         args.scenes,
         args.budget,
         args.out,
+        time_budget=time_budget,
         configs=parse_configs(args.configs),
         resolution_scale=args.resolution_scale,
         base=_nested(_parse_overrides(args.set)),
@@ -337,7 +360,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _bench_command(args: argparse.Namespace) -> str:
     """The ``glint bench`` command line that reproduces this run (for bench.md)."""
-    parts = ["glint bench", *args.scenes, f"--budget {args.budget}"]
+    parts = ["glint bench", *args.scenes]
+    parts += [f"--budget {args.budget}"] if args.budget is not None else []
+    parts += [f"--time {args.time}"] if args.time is not None else []
     parts += [f"--resolution-scale {args.resolution_scale:g}", f"--configs {args.configs}"]
     parts += [f"--set {s}" for s in args.set or []]
     for flag, value in (
@@ -428,14 +453,19 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_eval)
     p = sub.add_parser(
         "bench",
-        help="ablation benchmark (paper Table 3) over scenes at an iteration budget",
+        help="ablation benchmark (paper Table 3) over scenes at an iteration or time budget",
         description="Trains and evaluates the full model and each ablation on each scene, "
         "then writes bench.md (one table per scene, Table 3 layout) and error_vs_time.png "
         "into --out. Resumable: finished runs (with eval.json) are skipped, interrupted ones "
         "continue from their checkpoint.",
     )
     p.add_argument("scenes", nargs="+", help="scene folders")
-    p.add_argument("--budget", type=int, required=True, help="training iterations per run")
+    p.add_argument("--budget", type=int, help="training iterations per run")
+    p.add_argument(
+        "--time",
+        metavar="DURATION",
+        help="run time per run, e.g. 90s, 5m (with --budget: whichever comes first)",
+    )
     p.add_argument("--out", default="runs/bench", help="benchmark folder")
     p.add_argument("--resolution-scale", type=float, default=1.0, help="image scale, (0, 1]")
     p.add_argument(

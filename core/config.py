@@ -8,6 +8,8 @@ short CPU run keeps the same shape as the full one.
 from __future__ import annotations
 
 import json
+import math
+import re
 from pathlib import Path
 from typing import Any, Literal
 
@@ -25,6 +27,9 @@ MAX_INIT_POINTS = 10_000_000
 MAX_LOSS_WEIGHT = 1e6
 MAX_LEARNING_RATE = 1.0
 MAX_SEED = 2**32 - 1
+MAX_TIME_BUDGET_S = 7 * 24 * 3600  # a week: beyond it a budget is a typo, not a plan
+_DURATION_RE = re.compile(r"(\d+(?:\.\d+)?)\s*(h|m|s)")
+_DURATION_UNITS = {"h": 3600.0, "m": 60.0, "s": 1.0}
 
 
 class ConfigError(GlintError):
@@ -173,7 +178,18 @@ class Outputs(_Strict):
 class TrainConfig(_Strict):
     """The whole training configuration."""
 
-    iterations: int = Field(30_000, ge=1, le=MAX_ITERATIONS)
+    iterations: int = Field(
+        30_000,
+        ge=1,
+        le=MAX_ITERATIONS,
+        description="iterations of the run; with time_budget, whichever comes first ends it",
+    )
+    time_budget: float | None = Field(
+        None,
+        description="training time budget: seconds, or '90s', '5m', '1h', '1h30m' (at most 7 "
+        "days); the phase schedule is fitted to it from the measured step time and the run "
+        "ends with complete outputs when it is spent. Outputs (export, mesh) come after it",
+    )
     seed: int = Field(0, ge=0, le=MAX_SEED)
     device: str = Field("cpu", description="'cpu', 'cuda' or 'cuda:N'")
     backend: Literal["auto", "reference", "cpu", "cuda"] = "auto"
@@ -210,6 +226,11 @@ class TrainConfig(_Strict):
     )
     plan_overrides: dict[str, Any] = Field(default_factory=dict)
 
+    @field_validator("time_budget", mode="before")
+    @classmethod
+    def _time_budget(cls, v: Any) -> Any:
+        return None if v is None else parse_duration(v)
+
     @field_validator("envmap_resolution")
     @classmethod
     def _envmap_res(cls, v: Any) -> Any:
@@ -238,6 +259,47 @@ class TrainConfig(_Strict):
     def scaled(self, mark: int) -> int:
         """A mark on the 30k schedule mapped onto this run's length."""
         return round(mark * self.iterations / REFERENCE_ITERATIONS)
+
+
+def parse_duration(value: Any) -> float:
+    """Seconds from ``90``, ``"90s"``, ``"5m"``, ``"1h"`` or ``"1h30m"``; ValueError
+    naming what was expected otherwise (zero, negative, non-finite, over a week)."""
+    expected = "a duration such as 90s, 5m, 1h or 1h30m (or a number of seconds)"
+    if isinstance(value, bool):
+        raise ValueError(f"expected {expected}, got {value!r}")
+    if isinstance(value, int | float):
+        seconds = float(value)
+    elif isinstance(value, str):
+        text = value.strip().lower().replace(" ", "")
+        try:
+            seconds = float(text)
+        except ValueError:
+            parts = _DURATION_RE.findall(text)
+            if not text or "".join(n + u for n, u in parts) != text:
+                raise ValueError(f"expected {expected}, got {value!r}") from None
+            units = [u for _, u in parts]
+            if len(set(units)) != len(units):
+                raise ValueError(f"expected {expected}, got {value!r} (a unit twice)") from None
+            seconds = sum(float(n) * _DURATION_UNITS[u] for n, u in parts)
+    else:
+        raise ValueError(f"expected {expected}, got {type(value).__name__}")
+    if not math.isfinite(seconds) or seconds <= 0:
+        raise ValueError(f"a time budget must be positive and finite, got {value!r}")
+    if seconds > MAX_TIME_BUDGET_S:
+        raise ValueError(
+            f"a time budget is at most {MAX_TIME_BUDGET_S // 86400} days "
+            f"({MAX_TIME_BUDGET_S} s), got {value!r} ({seconds:.0f} s)"
+        )
+    return seconds
+
+
+def format_duration(seconds: float) -> str:
+    """``330`` → ``"5m30s"`` (the inverse of :func:`parse_duration`, for reports)."""
+    s = round(seconds)
+    h, rest = divmod(s, 3600)
+    m, sec = divmod(rest, 60)
+    out = (f"{h}h" if h else "") + (f"{m}m" if m else "") + (f"{sec}s" if sec or not s else "")
+    return out or "0s"
 
 
 def _format_errors(exc: ValidationError, source: str) -> str:

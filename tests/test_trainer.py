@@ -69,7 +69,8 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
     }
     assert not plan["decisions"]["envmap"]["pending"]
     report = (tmp_path / "report.md").read_text()
-    assert "error_vs_time.png" in report and "| 40 |" in report
+    assert "error_vs_time.png" in report
+    assert all(f"| {r['iteration']} |" in report for r in rows)  # a table row per evaluation
 
 
 class _CrashError(RuntimeError):

@@ -197,8 +197,7 @@ def mesh_model(
     )
     t1 = time.perf_counter()
     report("extract", 0, 1)
-    raw = extract_mesh(vol)
-    mesh, comp = keep_largest_components(raw, keep_fraction)
+    mesh, comp = keep_largest_components(extract_mesh(vol), keep_fraction)
     if simplify is not None:
         mesh = simplify_mesh(mesh, vol, simplify)
     del vol

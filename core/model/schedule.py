@@ -21,9 +21,12 @@ def opacity_reset_every(cfg: TrainConfig) -> int:
     return max(MIN_RESET_INTERVAL, cfg.scaled(d.opacity_reset_interval))
 
 
-def last_opacity_reset(cfg: TrainConfig, iteration: int) -> int | None:
-    """The latest iteration before ``iteration`` that ended with an opacity reset."""
-    every, stop = opacity_reset_every(cfg), cfg.scaled(cfg.densify.stop)
+def last_opacity_reset(cfg: TrainConfig, iteration: int, every: int | None = None) -> int | None:
+    """The latest iteration before ``iteration`` that ended with an opacity reset
+    (``every``: the run's reset interval when it differs from the config's, as in a
+    time-budgeted run that fixed it when its first reset passed)."""
+    every = opacity_reset_every(cfg) if every is None else every
+    stop = cfg.scaled(cfg.densify.stop)
     if every == 0 or iteration <= every:
         return None
     last = min(iteration - 1, stop - 1) // every * every
@@ -78,7 +81,7 @@ class Marks:
         return sorted({self.geometry_start, self.multiview_start, self.sh_full_start} - {0})
 
 
-def geometry_paused(cfg: TrainConfig, iteration: int) -> bool:
+def geometry_paused(cfg: TrainConfig, iteration: int, reset_every: int | None = None) -> bool:
     """True for ``phases.geometry_pause_after_reset`` iterations after an opacity reset.
 
     Why: right after a reset every opacity is ≤ 0.01, so the blended depth and normals
@@ -91,7 +94,7 @@ def geometry_paused(cfg: TrainConfig, iteration: int) -> bool:
     pause = cfg.phases.geometry_pause_after_reset
     if pause <= 0:
         return False
-    last = last_opacity_reset(cfg, iteration)
+    last = last_opacity_reset(cfg, iteration, reset_every)
     return last is not None and iteration - last <= pause
 
 
@@ -102,6 +105,7 @@ def phase_at(
     envmap_planned: bool = True,
     multi_view_planned: bool = True,
     max_sh_degree: int | None = None,
+    reset_every: int | None = None,
 ) -> Phase:
     """Phase of ``iteration`` (0-based): RGB → + single view & env map → + multi view."""
     m = Marks.of(cfg)
@@ -109,7 +113,7 @@ def phase_at(
     geo = iteration >= m.geometry_start
     mv = iteration >= m.multiview_start
     name = "multiview" if mv else ("geometry" if geo else "rgb")
-    paused = geometry_paused(cfg, iteration)
+    paused = geometry_paused(cfg, iteration, reset_every)
     top = cfg.sh_degree if max_sh_degree is None else min(cfg.sh_degree, max_sh_degree)
     return Phase(
         name=name,

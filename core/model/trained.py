@@ -80,6 +80,9 @@ class TrainedModel:
     train_seconds: float = 0.0
     skipped_steps: int = 0
     path: Path | None = None  # the checkpoint it was read from
+    # the iteration count its schedule was scaled to, when not config.iterations (a
+    # run sized by a time budget): its phases are placed on this length
+    schedule_iterations: int | None = None
     _static: dict[str, Tensor] | None = field(default=None, repr=False)
 
     # -- opening ----------------------------------------------------------------
@@ -134,6 +137,7 @@ class TrainedModel:
             train_seconds=float(x.get("train_seconds", 0.0)),
             skipped_steps=int(x.get("skipped_steps", 0)),
             path=ck_path,
+            schedule_iterations=x.get("schedule_iterations"),
         )
 
     # -- what the run was doing ---------------------------------------------------
@@ -150,8 +154,11 @@ class TrainedModel:
             sh = int(self.plan.sh_degree.value)
         else:
             env, mv, sh = self.envmap is not None, False, self.gaussians.sh_degree
+        cfg = self.config
+        if self.schedule_iterations and self.schedule_iterations != cfg.iterations:
+            cfg = cfg.model_copy(update={"iterations": int(self.schedule_iterations)})
         return phase_at(
-            self.config,
+            cfg,
             max(self.iteration - 1, 0),
             envmap_planned=env,
             multi_view_planned=mv,

@@ -305,9 +305,49 @@ def make_sphere_scene(
 
 
 def write_synthetic_scene(
-    out_dir: str | Path, shape: str = "sphere", kind: str = "glossy", **kwargs
+    out_dir: str | Path,
+    shape: str = "sphere",
+    kind: str = "glossy",
+    *,
+    ground_truth: bool = False,
+    gt_points: int = 20_000,
+    **kwargs,
 ) -> Path:
-    """Render a scene and write it in Blender (NeRF-synthetic) format; returns the folder."""
+    """Render a scene and write it in Blender (NeRF-synthetic) format; returns the folder.
+
+    ``ground_truth``: also write what the dev scenes ship for scoring geometry,
+    ``{split}_gt/{name}_depth.exr`` and ``_normal.exr`` (exact, at pixel centres) and
+    ``gt_points.ply`` (``gt_points`` points uniform on the surface, with normals).
+    """
     from core.scene.formats.writers import write_blender
 
-    return write_blender(make_scene(shape, kind, **kwargs), out_dir)
+    scene = make_scene(shape, kind, **kwargs)
+    out = write_blender(scene, out_dir)
+    if ground_truth:
+        write_ground_truth(scene, out, shape, n_points=gt_points)
+    return out
+
+
+def write_ground_truth(scene: Scene, out_dir: str | Path, shape: str, n_points: int) -> None:
+    """GT depth/normal maps of every view and GT surface points, in the dev-scene layout."""
+    import numpy as np
+    from plyfile import PlyData, PlyElement
+
+    from core.scene.formats.writers import _unique_names
+    from core.scene.imageio import write_image
+
+    out = Path(out_dir)
+    for split, views in (("train", scene.train), ("test", scene.test)):
+        for view, name in zip(views, _unique_names(views, strip=f"{split}/"), strict=True):
+            r = render_synthetic_view(view.camera, shape=shape, samples=1)
+            folder = out / f"{split}_gt"
+            folder.mkdir(parents=True, exist_ok=True)
+            depth = r.depth[..., None].expand(-1, -1, 3)
+            write_image(folder / f"{name}_depth.exr", depth, encode_srgb=False)
+            write_image(folder / f"{name}_normal.exr", r.normal, encode_srgb=False)
+    pts, nrm = surface_points(shape, n_points)
+    data = np.empty(len(pts), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
+    for i, k in enumerate("xyz"):
+        data[k] = pts[:, i].numpy()
+        data["n" + k] = nrm[:, i].numpy()
+    PlyData([PlyElement.describe(data, "vertex")]).write(str(out / "gt_points.ply"))

@@ -72,16 +72,7 @@ class DensifyStrategy:
             raise ValueError(f"scene_radius must be finite and > 0, got {scene_radius}")
         d = cfg.densify
         self.enabled = bool(d.enabled)
-        self.start = cfg.scaled(d.start)
-        self.stop = cfg.scaled(d.stop)
-        # The interval is a number of views to average gradients over, not a point on
-        # the schedule: it stays as configured, shortened so that a short run still
-        # gets about ten densification steps, but never below MIN_INTERVAL views (a
-        # gradient averaged over one or two views selects almost everything).
-        self.interval = max(
-            min(MIN_INTERVAL, d.interval), min(d.interval, (self.stop - self.start) // 10)
-        )
-        self.reset_every = opacity_reset_every(cfg)
+        self.reschedule(cfg)
         self.grad_threshold = float(d.grad_threshold)
         self.absgrad = bool(d.absgrad)
         self.split_scale = float(d.percent_dense) * scene_radius
@@ -97,6 +88,25 @@ class DensifyStrategy:
         self.max_radii: Tensor | None = None  # max screen radius / max(W, H)
 
     # -- schedule -----------------------------------------------------------
+    def reschedule(self, cfg: TrainConfig, iteration: int = 0) -> None:
+        """Place start, stop, interval and opacity resets on ``cfg``'s length (again,
+        when a time-budgeted run re-plans). The reset interval stays as it was once a
+        reset has passed, so two resets never fall closer than it."""
+        d = cfg.densify
+        self.start = cfg.scaled(d.start)
+        self.stop = cfg.scaled(d.stop)
+        # The interval is a number of views to average gradients over, not a point on
+        # the schedule: it stays as configured, shortened so that a short run still
+        # gets about ten densification steps, but never below MIN_INTERVAL views (a
+        # gradient averaged over one or two views selects almost everything).
+        self.interval = max(
+            min(MIN_INTERVAL, d.interval), min(d.interval, (self.stop - self.start) // 10)
+        )
+        every = opacity_reset_every(cfg)
+        old = getattr(self, "reset_every", None)
+        if old is None or not (0 < old <= iteration):
+            self.reset_every = every
+
     def is_refine_step(self, iteration: int) -> bool:
         """Grow + prune at this iteration: every ``interval`` in [start, stop), never at 0."""
         return (
@@ -322,6 +332,7 @@ class DensifyStrategy:
             "count": cpu(self.count),
             "max_radii": cpu(self.max_radii),
             "rng": self._gen.get_state(),
+            "reset_every": self.reset_every,
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -341,3 +352,5 @@ class DensifyStrategy:
         self.count = load(tensors[1], torch.int32)
         self.max_radii = load(tensors[2], torch.float32)
         self._gen.set_state(torch.as_tensor(state["rng"], dtype=torch.uint8).cpu())
+        if state.get("reset_every") is not None:  # older states: the config's, as built
+            self.reset_every = int(state["reset_every"])

@@ -22,7 +22,7 @@ from torch import Tensor
 from core.config import ConfigError, TrainConfig
 from core.devices import require_device
 from core.errors import BackendUnavailableError
-from core.evaluation.metrics import psnr, ssim_srgb
+from core.evaluation.progress import CHAMFER_FRACTIONS, ProgressEvaluator
 from core.model.checkpoint import load_checkpoint, save_checkpoint
 from core.model.plan import ScenePlan
 from core.model.schedule import Marks, Phase, phase_at
@@ -39,6 +39,7 @@ from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
 from core.render.raster import resolve_backend
 from core.render.shading import ShadeResult, deferred_shade
 from core.scene.views import Scene, View
+from core.training.budget import TimeBudget
 from core.training.densify import DensifyStrategy
 from core.training.init_points import visual_hull_points
 from core.training.losses import (
@@ -52,6 +53,10 @@ from core.training.optim import make_optimizers, means_lr, set_lr
 from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
 
 Event = dict[str, Any]
+# Cadence evaluations while training may take at most this share of the training time:
+# a cadence point is skipped when they have taken more (small images, slow renders).
+# Phase ends, the run's end and the Chamfer probes are always evaluated.
+EVAL_SHARE = 0.05
 
 
 @dataclass
@@ -60,6 +65,8 @@ class TrainResult:
     iteration: int
     train_seconds: float
     last_metrics: dict[str, Any] = field(default_factory=dict)
+    stopped_by: str = "iterations"  # "iterations" | "time" (the budget was spent)
+    skipped_steps: int = 0
 
 
 def background_color(cfg: TrainConfig, device: torch.device, gen: torch.Generator) -> Tensor:
@@ -137,11 +144,19 @@ class Trainer:
         self.should_stop = should_stop or (lambda: False)
         self.progress = progress
         self.radius = float(scene.radius)
+        self.budget = TimeBudget.of(cfg)
+        self.sched = cfg  # the config the schedule follows: cfg, resized to the time budget
         self.marks = Marks.of(cfg)
         self.gen = torch.Generator().manual_seed(cfg.seed)
         self.iteration = 0
-        self.train_seconds = 0.0
+        self.train_seconds = 0.0  # training steps only
+        self.eval_seconds = 0.0  # evaluation while training (metrics rows)
+        self.cadence_seconds = 0.0  # of which image and per-pixel geometry evaluations
+        self.io_seconds = 0.0  # checkpoints
+        self.chamfer_probes = 0  # CHAMFER_FRACTIONS passed so far
         self.skipped_steps = 0
+        self._evaluator: ProgressEvaluator | None = None
+        self._costs: dict[str, float] = {}  # mean seconds of one eval / chamfer / checkpoint
         self.metrics = MetricsLog(self.out / "metrics.jsonl")
         self._order: list[int] = []
         self._targets = [self._to_device(v) for v in scene.train]
@@ -185,6 +200,24 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         self.plan.save(self.out / "plan.json")
 
+    def _resize_schedule(self, iterations: int) -> None:
+        """Scale the schedule (phases, densification, learning rate) to ``iterations``."""
+        if iterations == self.sched.iterations:
+            return
+        self.sched = self.cfg.model_copy(update={"iterations": int(iterations)})
+        self.marks = Marks.of(self.sched)
+        self.strategy.reschedule(self.sched, self.iteration)
+
+    @property
+    def used_seconds(self) -> float:
+        """What the run has spent of its time budget: training, evaluation, checkpoints."""
+        return self.train_seconds + self.eval_seconds + self.io_seconds
+
+    def time_left(self) -> float | None:
+        if self.budget is None:
+            return None
+        return max(0.0, self.budget.seconds - self.used_seconds)
+
     def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         opts: dict[str, torch.optim.Optimizer] = dict(
             make_optimizers(self.gaussians, self.cfg, self.radius)
@@ -207,10 +240,17 @@ class Trainer:
 
     # -- checkpoints ------------------------------------------------------
     def save(self, path: Path | None = None) -> Path:
+        t0 = time.perf_counter()
         path = path or self.checkpoint_path
         extra = {
             "iteration": self.iteration,
             "train_seconds": self.train_seconds,
+            "eval_seconds": self.eval_seconds,
+            "cadence_seconds": self.cadence_seconds,
+            "io_seconds": self.io_seconds,
+            "chamfer_probes": self.chamfer_probes,
+            "schedule_iterations": self.sched.iterations,
+            "budget": None if self.budget is None else self.budget.state_dict(),
             "skipped_steps": self.skipped_steps,
             "config": self.cfg.model_dump(mode="json"),
             "plan": self.plan.to_dict(),
@@ -227,6 +267,9 @@ class Trainer:
             "rng_python_pos": random.getstate()[2] if random.getstate()[2] is not None else -1,
         }
         save_checkpoint(path, self.gaussians, extra)
+        dt = time.perf_counter() - t0
+        self.io_seconds += dt
+        self._note_cost("checkpoint", dt)
         self.on_event({"type": "checkpoint", "iteration": self.iteration, "path": str(path)})
         return path
 
@@ -245,6 +288,14 @@ class Trainer:
         self.strategy.load_state_dict(x["densify"])
         self.iteration = int(x["iteration"])
         self.train_seconds = float(x["train_seconds"])
+        self.eval_seconds = float(x.get("eval_seconds", 0.0))
+        self.cadence_seconds = float(x.get("cadence_seconds", self.eval_seconds))
+        self.io_seconds = float(x.get("io_seconds", 0.0))
+        self.chamfer_probes = int(x.get("chamfer_probes", 0))
+        if self.budget is not None and isinstance(x.get("budget"), dict):
+            # the time left is the checkpoint's: a crash does not refill the budget
+            self.budget.load_state_dict(x["budget"])
+        self._resize_schedule(int(x.get("schedule_iterations", self.cfg.iterations)))
         self.skipped_steps = int(x["skipped_steps"])
         self._order = [int(i) for i in x["order"]]
         torch.set_rng_state(x["rng_torch"].cpu())
@@ -263,11 +314,12 @@ class Trainer:
     def current_phase(self, iteration: int | None = None) -> Phase:
         it = self.iteration if iteration is None else iteration
         return phase_at(
-            self.cfg,
+            self.sched,
             it,
             envmap_planned=bool(self.plan.envmap.value),
             multi_view_planned=bool(self.plan.multi_view.value),
             max_sh_degree=int(self.plan.sh_degree.value),
+            reset_every=self.strategy.reset_every,
         )
 
     def _gradient_ratios(self) -> list[Tensor]:
@@ -291,7 +343,7 @@ class Trainer:
     def step(self) -> dict[str, float]:
         cfg, it = self.cfg, self.iteration
         phase = self.current_phase()
-        set_lr(self.optimizers["means"], means_lr(cfg, it, self.radius))
+        set_lr(self.optimizers["means"], means_lr(self.sched, it, self.radius))
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
@@ -373,6 +425,7 @@ class Trainer:
             config=self.cfg,
             plan=self.plan,
             iteration=self.iteration,
+            schedule_iterations=self.sched.iterations,
             device=self.device,
             backend=self.cfg.backend,
             cameras=[v.camera for v in self.scene.train],
@@ -390,35 +443,84 @@ class Trainer:
         idx = np.linspace(0, len(pool) - 1, n).round().astype(int)
         return [pool[i] for i in idx]
 
+    @property
+    def evaluator(self) -> ProgressEvaluator:
+        if self._evaluator is None:
+            self._evaluator = ProgressEvaluator(
+                self.progress_views(), self.scene.train, self.scene.root, self.device
+            )
+        return self._evaluator
+
+    def progress_fraction(self) -> float:
+        """How far the run is: of its time budget, or of its iterations, whichever is
+        further (the one that ends it)."""
+        frac = self.iteration / max(self.sched.iterations, 1)
+        if self.budget is not None:
+            frac = max(frac, self.used_seconds / self.budget.seconds)
+        return min(frac, 1.0)
+
+    def _chamfer_due(self, final: bool) -> bool:
+        if self.evaluator.gt_points is None:
+            return False
+        if final:
+            return True
+        due = sum(f <= self.progress_fraction() for f in CHAMFER_FRACTIONS)
+        return due > self.chamfer_probes
+
     @torch.no_grad()
-    def evaluate(self) -> dict[str, float]:
-        model = self.model
-        bg = model.background
-        ps, ss = [], []
-        for v in self.progress_views():
-            final = model.render(v.camera, ("final",), background=bg).image("final")
-            target = self._to_device(v).composited(bg)
-            ps.append(psnr(final, target))
-            ss.append(ssim_srgb(final, target))
-        return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss))}
+    def evaluate(self, final: bool = False, cadence: bool = False) -> dict[str, Any]:
+        """Held-out error (and geometry error or consistency) of the live model; the
+        Chamfer distance of its surface points at the probe points. Timed as evaluation
+        (``cadence``: a cadence point, which EVAL_SHARE limits)."""
+        t0 = time.perf_counter()
+        # nothing changes while evaluating: rotations and normals once, not per render
+        model = self.model.freeze()
+        out: dict[str, Any] = self.evaluator.images_and_geometry(model)
+        out["geometry"] = self.evaluator.kind
+        dt = time.perf_counter() - t0
+        self._note_cost("eval", dt)
+        if cadence:
+            self.cadence_seconds += dt
+        if self._chamfer_due(final):
+            ch = self.evaluator.chamfer(model)
+            if ch is not None:
+                out.update(
+                    cd_x100=ch["cd_x100"], fscore=ch["fscore"], chamfer_seconds=ch["seconds"]
+                )
+                self._note_cost("chamfer", float(ch["seconds"]))
+            self.chamfer_probes = sum(f <= self.progress_fraction() for f in CHAMFER_FRACTIONS)
+        self.eval_seconds += time.perf_counter() - t0
+        return out
 
     # -- the loop ---------------------------------------------------------
+    def _eval_affordable(self) -> bool:
+        """A cadence evaluation runs while evaluating has cost at most EVAL_SHARE of the
+        training time (phase ends and the run's end are always evaluated)."""
+        return self.cadence_seconds <= EVAL_SHARE * self.train_seconds
+
     def _eval_every(self) -> int:
-        return self.cfg.eval.every or max(1, self.cfg.iterations // 20)
+        return self.cfg.eval.every or max(1, self.sched.iterations // 20)
 
     def _ckpt_every(self) -> int:
-        return self.cfg.checkpoint_every or max(1, self.cfg.iterations // 5)
+        return self.cfg.checkpoint_every or max(1, self.sched.iterations // 5)
 
-    def _record(self, losses: dict[str, float]) -> dict[str, Any]:
+    def _record(
+        self, losses: dict[str, float], final: bool = False, cadence: bool = False
+    ) -> dict[str, Any]:
+        metrics = self.evaluate(final, cadence)
         row = {
             "iteration": self.iteration,
             "wall_time": round(self.train_seconds, 4),
+            "eval_seconds": round(self.eval_seconds, 4),
             "phase": self.current_phase(self.iteration - 1).name,
             "n_gaussians": self.gaussians.num,
             "loss": losses,
             "skipped_steps": self.skipped_steps,
-            **self.evaluate(),
+            **metrics,
         }
+        if self.budget is not None:
+            row["time_left"] = round(self.time_left() or 0.0, 3)
+            row["planned_iterations"] = self.sched.iterations
         self.metrics.append(row)
         self.last_eval = row
         self.on_event({"type": "eval", **row})
@@ -437,36 +539,102 @@ class Trainer:
             self.plan.save(self.out / "plan.json")
             self.on_event({"type": "plan", "plan": self.plan.to_dict()})
 
+    def _overhead(self, n: int, steps_seconds: float) -> float:
+        """Seconds of evaluation and checkpoints a run of ``n`` iterations still makes
+        from here (``steps_seconds`` of training), at their measured mean cost: cadence
+        evaluations (at most EVAL_SHARE of the training), one per phase change and the
+        last, the Chamfer probes left, and checkpoints. The time budget pays for them."""
+        left = max(n - self.iteration, 0)
+        every_eval = self.cfg.eval.every or max(1, n // 20)
+        every_ckpt = self.cfg.checkpoint_every or max(1, n // 5)
+        c = self._costs
+        marks = Marks.of(self.cfg.model_copy(update={"iterations": n})).boundaries()
+        fixed = sum(m > self.iteration for m in marks) + 1  # phase changes ahead + the end
+        cadence = min(left / every_eval * c.get("eval", 0.0), EVAL_SHARE * steps_seconds)
+        probes = 0
+        if self.evaluator.gt_points is not None:
+            probes = len(CHAMFER_FRACTIONS) - self.chamfer_probes + 1
+        return (
+            cadence
+            + fixed * c.get("eval", 0.0)
+            + probes * c.get("chamfer", 0.0)
+            + (left / every_ckpt + fixed) * c.get("checkpoint", 0.0)
+        )
+
+    def _note_cost(self, kind: str, seconds: float) -> None:
+        old = self._costs.get(kind)
+        self._costs[kind] = seconds if old is None else 0.7 * old + 0.3 * seconds
+
+    def _replan(self, force: bool = False) -> None:
+        """Fit the schedule to the time left (a time-budgeted run, every 2% of it, and
+        when it reaches its planned end with time to spare)."""
+        b = self.budget
+        if b is None or not b.due(self.used_seconds, force=force):
+            return
+        planned = b.plan(
+            self.cfg, self.iteration, self.used_seconds, self.gaussians.num, self._overhead
+        )
+        self._resize_schedule(planned)
+
+    def _budget_spent(self) -> bool:
+        """Whether the next step, the final evaluation and checkpoint would overrun."""
+        left = self.time_left()
+        if left is None or self.budget is None:
+            return False
+        step = self.budget.step_cost(self.current_phase().name, self.gaussians.num) or 0.0
+        final = self._costs.get("eval", 0.0) + self._costs.get("checkpoint", 0.0)
+        if self.evaluator.gt_points is not None:
+            final += self._costs.get("chamfer", 0.0)
+        return left <= step + final
+
+    def _eta(self) -> float:
+        it, total = self.iteration, self.sched.iterations
+        rate = it / self.train_seconds if self.train_seconds > 0 else 0.0
+        eta = (total - it) / rate if rate > 0 else math.nan
+        left = self.time_left()
+        return eta if left is None else (left if math.isnan(eta) else min(eta, left))
+
     def train(self) -> TrainResult:
-        cfg = self.cfg
-        total = cfg.iterations
         bar = None
         if self.progress:
             from tqdm import tqdm
 
             bar = tqdm(
-                total=total, initial=self.iteration, desc="train", unit="it", dynamic_ncols=True
-            )
-        boundaries = set(self.marks.boundaries())
+                total=self.sched.iterations, initial=self.iteration, desc="train", unit="it",
+                dynamic_ncols=True,
+            )  # fmt: skip
         if self.iteration == 0:
             self._record({})
-        status = "succeeded"
-        while self.iteration < total:
+        status, stopped_by = "succeeded", "iterations"
+        while True:
+            if self.iteration >= self.sched.iterations:
+                self._replan(force=True)  # time left over: the estimate was cautious
+                if self.iteration >= self.sched.iterations:
+                    break
             if self.should_stop():
                 status = "cancelled"
                 break
+            if self._budget_spent():
+                stopped_by = "time"
+                break
             self._maybe_plan_view_dependence()
+            phase = self.current_phase().name
             t0 = time.perf_counter()
             losses = self.step()
-            self.train_seconds += time.perf_counter() - t0
+            dt = time.perf_counter() - t0
+            self.train_seconds += dt
+            if self.budget is not None:
+                self.budget.observe(phase, dt, self.gaussians.num)
+                self._replan()
             self.last_losses = losses
-            it = self.iteration
-            if it % self._eval_every() == 0 or it == total or it in boundaries:
-                self._record(losses)
+            it, total = self.iteration, self.sched.iterations
+            boundaries = set(self.marks.boundaries())
+            if it == total or it in boundaries:
+                self._record(losses, final=it == total)
+            elif it % self._eval_every() == 0 and self._eval_affordable():
+                self._record(losses, cadence=True)
             if it % self._ckpt_every() == 0 or it in boundaries:
                 self.save()
-            rate = it / self.train_seconds if self.train_seconds > 0 else 0.0
-            eta = (total - it) / rate if rate > 0 else math.nan
             self.on_event(
                 {
                     "type": "progress",
@@ -476,18 +644,26 @@ class Trainer:
                     "n_gaussians": self.gaussians.num,
                     "loss": losses.get("total"),
                     "elapsed": self.train_seconds,
-                    "eta": eta,
+                    "eta": self._eta(),
+                    "time_left": self.time_left(),
                     "psnr": self.last_eval.get("psnr"),
                 }
             )
             if bar is not None:
+                if bar.total != total:
+                    bar.total = total
                 bar.update(1)
                 bar.set_postfix(
                     phase=self.current_phase(it - 1).name,
                     n=self.gaussians.num,
                     psnr=f"{self.last_eval.get('psnr', float('nan')):.2f}",
                 )
+        if status == "succeeded" and self.last_eval.get("iteration") != self.iteration:
+            self._record(self.last_losses, final=True)  # the run's end is always a row
         if bar is not None:
             bar.close()
         self.save()
-        return TrainResult(status, self.iteration, self.train_seconds, dict(self.last_eval))
+        return TrainResult(
+            status, self.iteration, self.train_seconds, dict(self.last_eval), stopped_by,
+            self.skipped_steps,
+        )  # fmt: skip

@@ -1,0 +1,176 @@
+"""Time budgets: durations, the planned iteration count, and budgeted runs on the CPU."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+import torch
+
+from core.cli import main
+from core.config import ConfigError, config_from_dict, format_duration, parse_duration
+from core.model.schedule import Marks
+from core.scene.synthetic import write_synthetic_scene
+from core.training.budget import TimeBudget
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY = {
+    "init_points": 300,
+    "envmap_resolution": 8,
+    "eval": {"views": 1},
+    "densify": {"max_gaussians": 1500},
+    "outputs": {"mesh_resolution": 32},
+}
+
+
+@pytest.mark.parametrize(
+    ("text", "seconds"),
+    [("90s", 90), ("5m", 300), ("1h", 3600), ("1h30m", 5400), ("2.5m", 150), (45, 45), ("12", 12)],
+)
+def test_durations(text, seconds) -> None:
+    assert parse_duration(text) == seconds
+    assert parse_duration(format_duration(seconds)) == seconds
+
+
+@pytest.mark.parametrize(
+    "bad", ["0", 0, "-5m", "soon", "5x", "", "inf", "nan", "8d", "200h", "5m5m", True, None]
+)
+def test_bad_durations_name_the_problem(bad) -> None:
+    with pytest.raises((ValueError, TypeError)):
+        parse_duration(bad)
+    if bad is not None:
+        with pytest.raises(ConfigError, match="time_budget"):
+            config_from_dict({"time_budget": bad})
+
+
+def test_bad_duration_on_the_command_line_writes_nothing(tmp_path: Path, capsys) -> None:
+    out = tmp_path / "run"
+    assert main(["train", str(tmp_path), "--out", str(out), "--time=-5m"]) == 2
+    assert "--time" in capsys.readouterr().err and not out.exists()
+    assert main(["bench", str(tmp_path), "--out", str(out), "--time", "soon"]) == 2
+    assert not out.exists()
+
+
+def _budget(seconds: float, cap: int = 30_000) -> tuple[TimeBudget, object]:
+    cfg = config_from_dict({"time_budget": seconds, "iterations": cap})
+    b = TimeBudget.of(cfg)
+    assert b is not None
+    for _ in range(10):
+        b.observe("rgb", 0.01, 1000)  # 10 µs per Gaussian-step
+    return b, cfg
+
+
+def no_overhead(n: int, steps: float) -> float:
+    return 0.0
+
+
+def test_the_plan_fills_the_time_left_and_keeps_the_phase_proportions() -> None:
+    b, cfg = _budget(100.0)
+    n = b.plan(cfg, 10, used=1.0, n_gaussians=1000, overhead=no_overhead)
+    left = 99.0
+    assert b.predict(cfg, n, 10, 1000, no_overhead) <= left
+    assert b.predict(cfg, n + 1, 10, 1000, no_overhead) > left
+    # later phases cost more per step than the RGB steps measured so far
+    assert n < 10 + left / 0.01
+    m = Marks.of(cfg.model_copy(update={"iterations": n}))  # the paper's proportions
+    assert m.geometry_start / n == pytest.approx(3_000 / 30_000, abs=0.005)
+    assert m.multiview_start / n == pytest.approx(7_000 / 30_000, abs=0.005)
+    # twice the time, about twice the iterations; the cap always wins
+    b2, _ = _budget(200.0)
+    assert b2.plan(cfg, 10, 1.0, 1000, no_overhead) > 1.8 * n
+    b3, cfg3 = _budget(1e5, cap=500)
+    assert b3.plan(cfg3, 10, 1.0, 1000, no_overhead) == 500
+
+
+def test_a_new_plan_never_moves_a_passed_phase_mark_past_the_last_step() -> None:
+    b, cfg = _budget(100.0)
+    n = b.plan(cfg, 10, 1.0, 1000, no_overhead)
+    geo = Marks.of(cfg.model_copy(update={"iterations": n})).geometry_start
+    it = geo + 5  # in the geometry phase; steps turn out far cheaper than predicted
+    b.cost = {"rgb": 1e-7, "geometry": 1e-7}
+    n2 = b.plan(cfg, it, 20.0, 1000, no_overhead)
+    assert Marks.of(cfg.model_copy(update={"iterations": n2})).geometry_start <= it - 1
+    assert n2 > n  # it may grow, but the passed mark stays behind the last step
+
+
+def _rows(run: Path) -> list[dict]:
+    return [json.loads(x) for x in (run / "metrics.jsonl").read_text().splitlines()]
+
+
+def _used(ck: Path) -> float:
+    x = torch.load(ck, map_location="cpu", weights_only=False)["extra"]
+    return float(x["train_seconds"] + x["eval_seconds"] + x["io_seconds"])
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory) -> Path:
+    return write_synthetic_scene(
+        tmp_path_factory.mktemp("tb") / "s", "sphere", "glossy", n_train=8, n_test=2, size=24
+    )
+
+
+def test_a_budgeted_run_stops_in_time_with_complete_outputs(tiny_scene: Path, tmp_path) -> None:
+    from core.training.run import train_scene
+
+    budget = 8.0
+    cfg = config_from_dict({**TINY, "time_budget": budget})
+    run = tmp_path / "run"
+    result, summary = train_scene(tiny_scene, run, cfg)
+    assert result.status == "succeeded" and result.stopped_by == "time"
+    used = _used(run / "checkpoint.pt")
+    assert budget * 0.7 < used <= budget * 1.1 + 0.5
+    rows = _rows(run)
+    assert rows[-1]["iteration"] == result.iteration and rows[-1]["time_left"] >= 0
+    phases = {r["phase"] for r in rows}
+    assert phases == {"rgb", "geometry", "multiview"}  # the schedule was fitted, not cut
+    for name in ("checkpoint.pt", "point_cloud.ply", "report.md", "mesh.ply", "plan.json"):
+        assert (run / name).is_file(), name
+    assert summary is not None and summary["mesh"]["faces"] > 0
+    # the model reopens on the schedule it trained with: its last phase, not the cap's
+    from core.model.trained import TrainedModel
+
+    assert TrainedModel.open(run).phase.name == "multiview"
+
+
+def test_a_killed_budgeted_run_resumes_with_the_time_left(tiny_scene: Path, tmp_path) -> None:
+    from core.training.run import train_scene
+
+    budget = 14.0
+    run = tmp_path / "run"
+    sets = [
+        "--set", "init_points=300", "--set", "envmap_resolution=8", "--set", "eval.views=1",
+        "--set", "densify.max_gaussians=1500", "--set", "outputs.mesh=false",
+    ]  # fmt: skip
+    cmd = [sys.executable, "-m", "core.cli", "train", str(tiny_scene), "--out", str(run)]
+    proc = subprocess.Popen(
+        [*cmd, "--time", f"{budget:g}s", "--quiet", *sets], cwd=ROOT,
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+    )  # fmt: skip
+    ck = run / "checkpoint.pt"
+    try:
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline:  # a checkpoint past the first fifth of the run
+            if ck.is_file() and any(r["iteration"] > 0 for r in _rows(run)):
+                try:
+                    if _used(ck) > 0.2 * budget:
+                        break
+                except Exception:  # caught mid-rename
+                    pass
+            time.sleep(0.2)
+        os.killpg(proc.pid, signal.SIGKILL)
+    finally:
+        proc.wait(30)
+    used_at_kill = _used(ck)
+    assert 0.2 * budget < used_at_kill < budget
+    cfg = config_from_dict({**TINY, "time_budget": budget, "outputs": {"mesh": False}})
+    result, _ = train_scene(tiny_scene, run, cfg)  # resumes from the checkpoint
+    assert result.status == "succeeded" and result.stopped_by == "time"
+    used = _used(ck)
+    assert used <= budget * 1.1 + 0.5  # the budget was not refilled
+    assert used > used_at_kill
