@@ -65,6 +65,7 @@ def test_bench_writes_both_rows_and_the_figure(bench_run) -> None:
     md = (out / "bench.md").read_text()
     assert "| Full model |" in md and "| SH only (no deferred, no L_single, no L_multi) |" in md
     assert "2/2 runs finished" in md
+    assert "At equal wall time" in md and "Training seconds until CD×10²" in md
     assert f"Command: `glint bench {bench_run[0]} --budget {BUDGET}" in md
     assert (out / "error_vs_time.png").stat().st_size > 0
     assert (out / "error_vs_time_tiny.png").stat().st_size > 0
@@ -211,3 +212,33 @@ def test_mean_curve_averages_scenes_at_shared_iterations() -> None:
     m = mean_curve([a, b])
     assert [r["iteration"] for r in m] == [0, 10]
     assert m[1]["wall_time"] == 15.0 and m[1]["psnr"] == 25.0
+
+
+def test_equal_time_and_time_to_reach_interpolate_the_recorded_points() -> None:
+    from core.benchmark.tables import equal_time_rows, reach_table, time_to_reach, value_at
+
+    fast = [
+        {"wall_time": 0.0, "psnr": 20.0, "cd_x100": 4.0},
+        {"wall_time": 10.0, "psnr": 30.0},
+        {"wall_time": 20.0, "psnr": 32.0, "cd_x100": 2.0},
+    ]
+    slow = [
+        {"wall_time": 0.0, "psnr": 20.0, "cd_x100": 4.0},
+        {"wall_time": 40.0, "psnr": 36.0, "cd_x100": 1.0},
+    ]
+    assert value_at(fast, "psnr", 5.0) == 25.0 and value_at(fast, "cd_x100", 10.0) == 3.0
+    assert value_at(fast, "psnr", 25.0) is None  # never extrapolated
+    t, rows = equal_time_rows({"full": slow, "sh_only": fast})
+    assert t == 20.0 and rows["full"]["psnr"] == 28.0 and rows["full"]["cd_x100"] == 2.5
+    assert time_to_reach(slow, "cd_x100", 2.5) == 20.0
+    assert time_to_reach(fast, "cd_x100", 1.0) is None
+    table = reach_table({"full": slow, "sh_only": fast}, None)
+    assert table is not None and "≤ 2.000" in table  # the worst final figure
+    assert "not reached" in reach_table({"full": slow, "sh_only": fast}, 1.5)
+
+
+def test_bench_configs_take_a_time_budget() -> None:
+    cfg = bench_config("full", None, 1.0, time_budget=90.0)
+    assert cfg.time_budget == 90.0 and cfg.iterations == 30_000
+    both = bench_config("sh_only", 500, 0.5, time_budget=60.0)
+    assert (both.iterations, both.time_budget) == (500, 60.0)

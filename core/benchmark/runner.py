@@ -15,6 +15,7 @@ from typing import Any
 from core.benchmark.cells import Cell, check_cell_config, plan_cells
 from core.benchmark.configs import CONFIGS, bench_config
 from core.config import TrainConfig, saved_config
+from core.errors import GlintError
 from core.evaluation.evaluate import (
     EVAL_FILE,
     atomic_json,
@@ -75,9 +76,10 @@ def refresh_fps(cells: Sequence[Cell], *, frames: int | None = None) -> int:
 
 def run_bench(
     scenes: Sequence[str | Path],
-    budget: int,
+    budget: int | None,
     out: str | Path,
     *,
+    time_budget: float | None = None,
     configs: Sequence[str] = tuple(CONFIGS),
     resolution_scale: float = 1.0,
     base: dict[str, Any] | None = None,
@@ -88,7 +90,12 @@ def run_bench(
 ) -> Path:
     """Train and evaluate every (scene, config) cell not finished yet; write bench.md
     (``command``, when given, is quoted in it so the table can be reproduced;
-    ``retime_fps`` re-times every finished cell's renderer back to back first)."""
+    ``retime_fps`` re-times every finished cell's renderer back to back first).
+    ``budget`` (iterations) and ``time_budget`` (seconds) size each run; with both,
+    whichever comes first ends it. The progress bar counts iterations, or runs when
+    the runs are sized by time."""
+    if budget is None and time_budget is None:
+        raise GlintError("give an iteration budget, a time budget, or both")
     from tqdm import tqdm
 
     from core.benchmark.tables import write_bench
@@ -96,16 +103,21 @@ def run_bench(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     cells = plan_cells(scenes, configs, out)
+    per_cell = budget if time_budget is None and budget is not None else 1
     bar = tqdm(
-        total=len(cells) * budget, unit="it", dynamic_ncols=True, disable=not progress, desc="bench"
+        total=len(cells) * per_cell,
+        unit="it" if per_cell > 1 else "run",
+        dynamic_ncols=True,
+        disable=not progress,
+        desc="bench",
     )
     loaded: dict[Path, Scene] = {}
     for cell in cells:
         bar.set_description(f"{cell.scene}/{cell.config}")
-        cfg = bench_config(cell.config, budget, resolution_scale, base)
+        cfg = bench_config(cell.config, budget, resolution_scale, base, time_budget)
         check_cell_config(cell, cfg)
         if cell.done:
-            bar.update(budget)
+            bar.update(per_cell)
             continue
         if cell.scene_dir not in loaded:
             loaded.clear()  # one scene in memory at a time
@@ -114,7 +126,7 @@ def run_bench(
         state = {"it": 0}
 
         def on_event(e: dict[str, Any], state: dict[str, int] = state) -> None:
-            if e.get("type") in ("progress", "resumed"):
+            if per_cell > 1 and e.get("type") in ("progress", "resumed"):
                 it = int(e["iteration"])
                 bar.update(it - state["it"])
                 state["it"] = it
@@ -122,11 +134,16 @@ def run_bench(
                 bar.set_postfix_str("evaluating")
 
         run_cell(cell, cfg, loaded[cell.scene_dir], on_event=on_event, eval_kwargs=eval_kwargs)
-        bar.update(start + budget - bar.n)
+        bar.update(start + per_cell - bar.n)
         bar.set_postfix_str("")
     bar.close()
     if retime_fps:
         refresh_fps(cells)
     return write_bench(
-        out, cells, budget=budget, resolution_scale=resolution_scale, command=command
+        out,
+        cells,
+        budget=budget,
+        resolution_scale=resolution_scale,
+        command=command,
+        time_budget=time_budget,
     )

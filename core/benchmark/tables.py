@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 from collections.abc import Sequence
@@ -11,6 +12,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from core.benchmark.configs import LABELS, TABLE_ORDER
+from core.config import format_duration
 from core.evaluation.evaluate import EVAL_FILE
 from core.evaluation.evaluate import fmt_value as _f
 from core.outputs.report import plot_error_vs_time, read_metrics
@@ -80,32 +82,105 @@ def mean_rows(per_scene: dict[str, dict[str, dict[str, Any]]]) -> dict[str, dict
     return out
 
 
+CURVE_KEYS = ("psnr", "cd_x100", "normal_error_deg", "depth_normal_consistency_deg")
+
+
 def mean_curve(curves: Sequence[list[dict[str, Any]]]) -> list[dict[str, Any]]:
-    """Held-out PSNR and wall time averaged over scenes at the iterations all share."""
+    """Wall time and each error averaged over scenes at the iterations all share (a
+    geometry value only where every scene has it)."""
     if not curves:
         return []
     common = set.intersection(*[{r["iteration"] for r in rows} for rows in curves])
     out = []
     for it in sorted(common):
         rs = [next(r for r in rows if r["iteration"] == it) for rows in curves]
-        out.append(
-            {
-                "iteration": it,
-                "wall_time": float(np.mean([r["wall_time"] for r in rs])),
-                "psnr": float(np.mean([r["psnr"] for r in rs])),
-                "phase": rs[0].get("phase"),
-            }
-        )
+        row: dict[str, Any] = {
+            "iteration": it,
+            "wall_time": float(np.mean([r["wall_time"] for r in rs])),
+            "phase": rs[0].get("phase"),
+        }
+        for key in CURVE_KEYS:
+            vals = [_num(r.get(key)) for r in rs]
+            if all(v is not None for v in vals):
+                row[key] = float(np.mean(vals))
+        out.append(row)
     return out
+
+
+def value_at(rows: list[dict[str, Any]], key: str, t: float) -> float | None:
+    """``key`` at training time ``t``, linearly interpolated between the rows that
+    recorded it (None outside them)."""
+    pts = [(r["wall_time"], x) for r in rows if (x := _num(r.get(key))) is not None]
+    if not pts or t < pts[0][0] - 1e-9 or t > pts[-1][0] + 1e-9:
+        return None
+    ts, vs = zip(*pts, strict=True)
+    return float(np.interp(t, ts, vs))
+
+
+def time_to_reach(rows: list[dict[str, Any]], key: str, target: float) -> float | None:
+    """Training seconds until ``key`` (an error) first falls to ``target``, linearly
+    interpolated between the recorded points; None when it never does."""
+    pts = [(r["wall_time"], x) for r in rows if (x := _num(r.get(key))) is not None]
+    for (t0, v0), (t1, v1) in itertools.pairwise(pts):
+        if v0 <= target:
+            return t0
+        if v1 <= target:
+            return t0 + (t1 - t0) * (v0 - target) / (v0 - v1)
+    if pts and pts[-1][1] <= target:
+        return pts[-1][0]
+    return None
+
+
+# (key, header, digits, better) of the equal-wall-time table: the run record's figures
+TIME_COLUMNS: tuple[tuple[str, str, int, int], ...] = (
+    ("cd_x100", "CD×10² (surface points) ↓", 3, -1),
+    ("psnr", "PSNR ↑", 2, 1),
+    ("normal_error_deg", "normal err (°) ↓", 2, -1),
+    ("depth_abs_error", "depth err ↓", 4, -1),
+)
+
+
+def equal_time_rows(
+    curves: dict[str, list[dict[str, Any]]],
+) -> tuple[float, dict[str, dict[str, Any]]]:
+    """Each configuration's recorded errors at the wall time the fastest one finished."""
+    ends = [rows[-1]["wall_time"] for rows in curves.values() if rows]
+    t = min(ends) if ends else 0.0
+    out = {}
+    for name, rows in curves.items():
+        out[name] = {key: value_at(rows, key, t) for key, _, _, _ in TIME_COLUMNS}
+    return t, out
+
+
+def reach_table(curves: dict[str, list[dict[str, Any]]], target: float | None) -> str | None:
+    """Time each configuration needs to bring its Chamfer distance down to ``target``
+    (default: the worst final figure, which every configuration reaches)."""
+    finals = [x for rows in curves.values() for r in rows[-1:] if (x := _num(r.get("cd_x100")))]
+    if not finals:
+        return None
+    target = max(finals) if target is None else target
+    names = [n for n in TABLE_ORDER if n in curves] + [n for n in curves if n not in TABLE_ORDER]
+    lines = [
+        f"Training seconds until CD×10² (surface points) ≤ {target:.3f}:",
+        "",
+        "| Model settings | seconds ↓ |",
+        "|---|---:|",
+    ]
+    for n in names:
+        t = time_to_reach(curves[n], "cd_x100", target)
+        lines.append(f"| {LABELS.get(n, n)} | {_f(t, 1) if t is not None else 'not reached'} |")
+    return "\n".join(lines)
 
 
 def write_bench(
     out: Path,
     cells: Sequence[Cell],
     *,
-    budget: int,
+    budget: int | None,
     resolution_scale: float,
     command: str | None = None,
+    time_budget: float | None = None,
+    target_cd: float | None = None,
 ) -> Path:
     """bench.md + error_vs_time.png (and one plot per scene) from the cells' results."""
     per_scene: dict[str, dict[str, dict[str, Any]]] = {}
@@ -123,7 +198,7 @@ def write_bench(
         plot_error_vs_time(
             {LABELS[k]: v for k, v in by_cfg.items()},
             out / f"error_vs_time_{scene}.png",
-            title=f"{scene}: held-out PSNR vs training time",
+            title=f"{scene}: held-out error vs training time",
         )
     mean_curves = {
         LABELS[c]: mean_curve([curves[s][c] for s in curves if c in curves[s]])
@@ -133,16 +208,28 @@ def write_bench(
     plot_error_vs_time(
         mean_curves,
         out / "error_vs_time.png",
-        title=f"Held-out PSNR vs training time, mean over {len(curves)} scene(s)",
+        title=f"Held-out error vs training time, mean over {len(curves)} scene(s)",
     )
     # the preamble describes the protocol from a run that has every part of it
     any_ev = next((e for e in evals.values() if e.get("chamfer")), next(iter(evals.values()), None))
     parts = ["# Glint ablation benchmark (paper Table 3 layout)", ""]
     if command:
         parts += [f"Command: `{command}`", ""]
-    parts += _bench_preamble(any_ev, budget, resolution_scale, len(cells), len(evals))
+    parts += _bench_preamble(any_ev, budget, resolution_scale, len(cells), len(evals), time_budget)
     for scene, rows in per_scene.items():
-        parts += [f"## {scene}", "", results_table(rows), ""]
+        parts += [f"## {scene}", "", "At the end of each run (`glint eval`):", ""]
+        parts += [results_table(rows), ""]
+        t, at_t = equal_time_rows(curves[scene])
+        parts += [
+            f"At equal wall time: each run's recorded errors at {t:.1f} s of training, when "
+            "the fastest finished (interpolated between its evaluations):",
+            "",
+            results_table(at_t, TIME_COLUMNS),
+            "",
+        ]
+        reach = reach_table(curves[scene], target_cd)
+        if reach:
+            parts += [reach, ""]
         parts += [f"![{scene}: error vs time](error_vs_time_{scene}.png)", ""]
     if len(per_scene) > 1:
         parts += [f"## Mean over {len(per_scene)} scenes", "", results_table(mean_rows(per_scene))]
@@ -154,12 +241,22 @@ def write_bench(
 
 
 def _bench_preamble(
-    ev: dict[str, Any] | None, budget: int, resolution_scale: float, n_cells: int, n_done: int
+    ev: dict[str, Any] | None,
+    budget: int | None,
+    resolution_scale: float,
+    n_cells: int,
+    n_done: int,
+    time_budget: float | None = None,
 ) -> list[str]:
+    sized = []
+    if budget is not None:
+        sized.append(f"{budget:,} iterations")
+    if time_budget is not None:
+        sized.append(f"{format_duration(time_budget)} of run time (training, evaluation)")
     lines = [
-        f"{n_done}/{n_cells} runs finished. Budget: {budget:,} iterations per run (the "
-        f"paper's 30k-iteration phase marks scaled to it), images at resolution scale "
-        f"{resolution_scale:g}.",
+        f"{n_done}/{n_cells} runs finished. Budget per run: {' or '.join(sized)}, whichever "
+        "comes first (the paper's 30k-iteration phase marks scaled to the run's length), "
+        f"images at resolution scale {resolution_scale:g}.",
         "",
     ]
     if ev is not None:
