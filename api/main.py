@@ -17,7 +17,7 @@ from sqlalchemy import update
 import viewer_web
 from api.deps import SCOPE_EXTRA
 from api.problems import PROBLEM_JSON, install_handlers
-from api.routers import artifacts, jobs, keys, meshes, scenes, viewer, workers
+from api.routers import artifacts, jobs, keys, meshes, metrics, scenes, viewer, workers
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Scene, SceneState
@@ -31,7 +31,7 @@ from api.timing import ServerTimingMiddleware
 log = logging.getLogger("glint.api")
 
 # every router of the API, mounted under /v1 (each built with StrictJsonRoute)
-ROUTERS = tuple(m.router for m in (keys, scenes, jobs, meshes, artifacts, workers, viewer))
+ROUTERS = tuple(m.router for m in (keys, scenes, jobs, metrics, meshes, artifacts, workers, viewer))
 
 
 def _recover(database: Database, queue: JobQueue, settings: Settings) -> None:

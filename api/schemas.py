@@ -193,7 +193,15 @@ class JobOut(BaseModel):
     loss: float | None
     metrics: dict[str, Any] | None = Field(description="latest held-out evaluation")
     elapsed_s: float | None = Field(description="training seconds so far")
-    eta_s: float | None = Field(description="estimated training seconds left")
+    eta_s: float | None = Field(
+        description="estimated seconds of training left (within the time budget, if any)"
+    )
+    time_budget_s: float | None = Field(
+        description="the job's time budget in seconds (config.time_budget), or null"
+    )
+    time_left_s: float | None = Field(
+        description="seconds of the time budget left (training, evaluation, checkpoints)"
+    )
     error: str | None
     attempts: int
     version: int = Field(description="bumped on every change")

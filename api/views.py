@@ -66,6 +66,8 @@ def job_out(job: Job) -> JobOut:
         metrics=job.metrics,
         elapsed_s=job.elapsed_s,
         eta_s=job.eta_s,
+        time_budget_s=(job.config or {}).get("time_budget"),
+        time_left_s=(job.metrics or {}).get("time_left"),
         error=job.error,
         attempts=job.attempts,
         version=job.version,

@@ -145,6 +145,7 @@ class _JobReporter:
         self.cancelled = False
         self.lost = False
         self.own_progress = False  # stage events drive iteration/total (mesh jobs)
+        self.last_metrics: dict[str, Any] = {}  # the latest evaluation row
         self.lock = threading.Lock()
 
     def _fenced(self) -> Update:
@@ -164,12 +165,16 @@ class _JobReporter:
                 elapsed_s=json_safe(event.get("elapsed")),
                 eta_s=json_safe(event.get("eta")),
             )
+            if event.get("time_left") is not None:  # a time-budgeted run: keep it current
+                self.last_metrics["time_left"] = json_safe(event["time_left"])
+                self.pending["metrics"] = dict(self.last_metrics)
             last = event["iteration"] >= event["total"]
             if last or time.monotonic() - self.last_write >= self.interval:
                 self.flush()
         elif kind == "eval":
             m = {k: v for k, v in event.items() if k != "type"}
-            self.pending["metrics"] = json_safe(m)
+            self.last_metrics = json_safe(m)
+            self.pending["metrics"] = dict(self.last_metrics)
         elif kind == "plan":
             self.pending["plan"] = json_safe(event.get("plan"))
         elif kind == "stage":
