@@ -14,7 +14,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal, get_args, get_origin
 
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 GiB = 1 << 30
@@ -109,9 +109,20 @@ class Settings(BaseSettings):
     local_workers: int = Field(1, ge=1, description="jobs run at once by the local queue")
     progress_interval_s: float = Field(0.5, gt=0, description="min seconds between DB writes")
     cancel_poll_s: float = Field(0.5, gt=0, description="min seconds between cancel checks")
-    heartbeat_s: float = Field(10.0, gt=0, description="a running job's liveness update")
+    heartbeat_s: float = Field(
+        5.0, gt=0, description="period of a running job's liveness update (its heartbeat)"
+    )
     stale_after_s: float = Field(
-        120.0, gt=0, description="a running job without heartbeat this long may be reclaimed"
+        20.0,
+        gt=0,
+        description="a running job without heartbeat this long has lost its runner: the "
+        "reaper puts it back in the queue (at least 2 x heartbeat_s)",
+    )
+    max_attempts: int = Field(
+        3,
+        ge=1,
+        description="runs a job gets when its runner dies (killed, crashed, lost its "
+        "machine): the job that lost this many runners ends failed, saying so",
     )
 
     mesh_max_resolution: int = Field(
@@ -133,7 +144,12 @@ class Settings(BaseSettings):
         "typical job length (a redelivery of a live job is a no-op, but costs a message)",
     )
     worker_heartbeat_s: float = Field(5.0, gt=0, description="workers-table upsert period")
-    reaper_interval_s: float = Field(15.0, gt=0, description="stale/lost job scan period")
+    reaper_interval_s: float = Field(
+        5.0,
+        gt=0,
+        description="period of the scan for stale / lost jobs (workers and, with the "
+        "celery queue, the API)",
+    )
     queued_grace_s: float = Field(
         60.0,
         gt=0,
@@ -152,6 +168,16 @@ class Settings(BaseSettings):
     sse_poll_s: float = Field(0.5, gt=0, description="job event stream DB poll period")
     sse_keepalive_s: float = Field(15.0, gt=0, description="comment line when nothing changed")
     page_size_max: int = Field(200, ge=1, description="largest page a list endpoint returns")
+
+    @model_validator(mode="after")
+    def _liveness_periods(self) -> Settings:
+        # a runner that beats every heartbeat_s must be able to miss one beat unnoticed
+        if self.stale_after_s < 2 * self.heartbeat_s:
+            raise ValueError(
+                f"stale_after_s ({self.stale_after_s}) must be at least twice heartbeat_s "
+                f"({self.heartbeat_s}): a live runner would be taken for dead"
+            )
+        return self
 
     @property
     def db_url(self) -> str:
