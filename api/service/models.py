@@ -164,6 +164,9 @@ class Job(Base):
     # bookkeeping
     version: Mapped[int] = mapped_column(Integer, default=1)
     attempts: Mapped[int] = mapped_column(Integer, default=0)
+    # runners this job lost (stopped heartbeating while running it); the reaper fails
+    # the job at Settings.max_attempts, and a resume starts the count again
+    runner_deaths: Mapped[int] = mapped_column(Integer, default=0, server_default="0")
     lease: Mapped[str | None] = mapped_column(String(40), default=None)
     worker: Mapped[str | None] = mapped_column(String(200), default=None)
     heartbeat_at: Mapped[datetime | None] = mapped_column(default=None)
