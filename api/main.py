@@ -21,8 +21,8 @@ from api.routers import artifacts, jobs, keys, meshes, metrics, scenes, viewer, 
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Scene, SceneState
-from api.service.queue import JobQueue, LocalQueue, make_queue
-from api.service.recovery import requeue_orphans
+from api.service.queue import CeleryQueue, JobQueue, LocalQueue, make_queue
+from api.service.recovery import Reaper, requeue_orphans
 from api.service.scene_records import relativise_scene_records
 from api.service.settings import Settings, apply_to_core, get_settings
 from api.service.store import ArtifactStore, LocalStore
@@ -34,17 +34,22 @@ log = logging.getLogger("glint.api")
 ROUTERS = tuple(m.router for m in (keys, scenes, jobs, metrics, meshes, artifacts, workers, viewer))
 
 
+# a scene another replica has been validating this long is taken as abandoned by a dead
+# process (validation writes no heartbeat; job liveness, GLINT_STALE_AFTER_S, is far shorter)
+VALIDATING_STALE_S = 120.0
+
+
 def _recover(database: Database, queue: JobQueue, settings: Settings) -> None:
     """Undo what a crashed process left half done (scenes mid-validation, local jobs)."""
     local = isinstance(queue, LocalQueue)
-    cutoff = datetime.now(UTC) - timedelta(seconds=settings.stale_after_s)
+    cutoff = datetime.now(UTC) - timedelta(seconds=VALIDATING_STALE_S)
     with database.write() as s:
         q = update(Scene).where(Scene.state == SceneState.VALIDATING)
         if not local:  # other replicas may be validating right now
             q = q.where(Scene.updated_at < cutoff)
         s.execute(q.values(state=SceneState.OPEN, updated_at=datetime.now(UTC)))
     if local:  # this process is the only runner: its orphans are ours to restart
-        for job_id in requeue_orphans(database):
+        for job_id in requeue_orphans(database, settings):
             queue.enqueue(job_id)
 
 
@@ -106,9 +111,15 @@ def create_app(
             relativise_scene_records(database, app.state.store.root)
         app.state.queue = queue or make_queue(settings)
         _recover(database, app.state.queue, settings)
+        reaper = None
+        if isinstance(app.state.queue, CeleryQueue):
+            # the workers reap too; the API's reaper requeues a job whose only worker died
+            reaper = Reaper(database, settings, app.state.queue.enqueue).start()
         try:
             yield
         finally:
+            if reaper is not None:
+                reaper.close()
             close = getattr(app.state.queue, "close", None)
             if queue is None and callable(close):
                 close()

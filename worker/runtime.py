@@ -4,14 +4,17 @@ One :class:`WorkerRuntime` per worker process. A small housekeeping thread
 
 * upserts this worker's row in ``workers`` every ``worker_heartbeat_s`` (device,
   current job), which ``GET /v1/workers`` lists, and
-* every ``reaper_interval_s`` re-sends jobs the broker lost track of: ``running``
-  jobs whose heartbeat is older than ``stale_after_s`` (their runner died; they go
-  back to ``queued`` and the next runner resumes them from their checkpoint), and
-  ``queued`` jobs untouched for ``queued_grace_s`` that have no message waiting in
-  the broker (a send that failed, a Redis that lost its data).
+* every ``reaper_interval_s`` runs the reaper (:func:`api.service.recovery.reap`):
+  ``running`` jobs whose heartbeat is older than ``stale_after_s`` lost their runner
+  (they go back to ``queued``, saying so, and the next runner resumes them from their
+  checkpoint; after ``max_attempts`` dead runners they fail); the dead runner's
+  unacknowledged message is dropped from Redis; ``queued`` jobs untouched for
+  ``queued_grace_s`` that have no message waiting in the broker (a send that failed,
+  a Redis that lost its data) are sent again.
 
-Every worker runs a reaper: they race through conditional UPDATEs, so each lost
-job is re-sent once per period, and a duplicate message would be a no-op anyway.
+Every worker runs a reaper (and so does the API with the Celery queue): they race
+through conditional UPDATEs, so each lost job is re-sent once per period, and a
+duplicate message would be a no-op anyway.
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ from sqlalchemy import delete, update
 from api.service.broker import QUEUE, TASK_TRAIN
 from api.service.db import database_for
 from api.service.models import JobState, Worker
-from api.service.recovery import lost_queued, requeue_stale_running
+from api.service.recovery import reap
 from api.service.settings import Settings
 
 log = logging.getLogger("glint.worker")
@@ -104,11 +107,14 @@ class WorkerRuntime:
         log.info("worker %s ready on %s", self.name, self.device)
 
     def _loop(self) -> None:
-        next_reap = time.monotonic()
-        while not self._closed.wait(self.settings.worker_heartbeat_s):
-            self.beat()
+        beat_every, reap_every = self.settings.worker_heartbeat_s, self.settings.reaper_interval_s
+        next_beat, next_reap = time.monotonic() + beat_every, time.monotonic()  # start() beat
+        while not self._closed.wait(max(min(next_beat, next_reap) - time.monotonic(), 0.0)):
+            if time.monotonic() >= next_beat:
+                next_beat = time.monotonic() + beat_every
+                self.beat()
             if time.monotonic() >= next_reap:
-                next_reap = time.monotonic() + self.settings.reaper_interval_s
+                next_reap = time.monotonic() + reap_every
                 self.reap()
 
     def beat(self) -> None:
@@ -134,20 +140,13 @@ class WorkerRuntime:
                 log.warning("worker heartbeat failed", exc_info=True)
 
     def reap(self) -> list[str]:
-        """Re-send stale and lost jobs; the ids sent."""
+        """Settle jobs whose runner died, drop its message, re-send lost jobs; the ids sent."""
         try:
-            stale = requeue_stale_running(self.database, self.settings.stale_after_s)
-            lost = lost_queued(self.database, self.settings)
+            reaped = reap(self.database, self.settings, self.send)
         except Exception:
             log.warning("reaper scan failed", exc_info=True)
             return []
-        for job_id in stale:
-            log.warning("job %s: runner silent; re-queued to resume elsewhere", job_id)
-        for job_id in lost:
-            log.warning("job %s: queued but not in the broker; re-sent", job_id)
-        for job_id in stale + lost:
-            self.send(job_id)
-        return stale + lost
+        return reaped.requeued + reaped.resent
 
     def close(self) -> None:
         """Stop housekeeping and remove this worker's row (it is no longer alive)."""

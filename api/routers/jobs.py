@@ -213,6 +213,7 @@ def resume_job(
             f"job '{job_id}' is {job.state}; only cancelled or failed jobs can be resumed",
         )
     job.state, job.cancel_requested, job.error = JobState.QUEUED, False, None
+    job.runner_deaths = 0  # a person asked for it: it gets max_attempts runners again
     job.finished_at, job.updated_at = None, _now()
     job.version += 1
     session.commit()

@@ -70,3 +70,64 @@ def pending_job_ids(settings: Settings, job_ids: list[str]) -> set[str]:
     finally:
         client.close()
     return {j for j in job_ids if j.encode() in raw}
+
+
+# kombu's Redis transport keeps each delivered, not yet acknowledged message in the hash
+# ``unacked`` (delivery tag → [message, exchange, routing key]) and the delivery time in
+# the sorted set ``unacked_index``; it hands a message back only after the visibility
+# timeout. A worker killed mid-job leaves its message there: the reaper removes it.
+UNACKED, UNACKED_INDEX = "unacked", "unacked_index"
+
+
+def _job_of(raw: bytes) -> str | None:
+    """The job id a ``glint.train`` message in ``unacked`` carries, or None."""
+    import base64
+    import json
+
+    try:
+        message = json.loads(raw)[0]
+        if message.get("headers", {}).get("task") != TASK_TRAIN:
+            return None
+        body = message["body"]
+        if message.get("properties", {}).get("body_encoding") == "base64":
+            body = base64.b64decode(body)
+        args = json.loads(body)[0]
+        return str(args[0]) if args else None
+    except (ValueError, KeyError, IndexError, TypeError):
+        return None
+
+
+def unacked_deliveries(settings: Settings) -> list[tuple[str, str | None, float]]:
+    """``(delivery tag, job id or None, delivered at)`` of every unacknowledged message.
+
+    Reads kombu's layout knowingly (see :func:`pending_job_ids`); a message that is not
+    a ``glint.train`` one has no job id and is left alone.
+    """
+    import redis
+
+    assert settings.redis_url
+    client = redis.Redis.from_url(settings.redis_url, socket_timeout=5)
+    try:
+        held = client.hgetall(UNACKED)
+        since = dict(client.zrange(UNACKED_INDEX, 0, -1, withscores=True))
+    finally:
+        client.close()
+    return [(tag.decode(), _job_of(raw), float(since.get(tag, 0.0))) for tag, raw in held.items()]
+
+
+def drop_unacked(settings: Settings, tags: list[str]) -> int:
+    """Forget these deliveries (their worker is gone); how many were still there."""
+    import redis
+
+    if not tags:
+        return 0
+    assert settings.redis_url
+    client = redis.Redis.from_url(settings.redis_url, socket_timeout=5)
+    try:
+        pipe = client.pipeline()
+        pipe.hdel(UNACKED, *tags)
+        pipe.zrem(UNACKED_INDEX, *tags)
+        removed, _ = pipe.execute()
+    finally:
+        client.close()
+    return int(removed)

@@ -2,10 +2,11 @@
 
 ``run_job(job_id, settings)`` is idempotent and safe under at-least-once delivery:
 
-* **Claim**: one conditional ``UPDATE`` moves the job ``queued → running`` (or takes
-  over a ``running`` job whose heartbeat is older than ``stale_after_s``: its runner
-  died) and stamps a fresh random ``lease``. Zero rows updated means someone else has
-  it, or it is finished or cancelled: return without doing anything.
+* **Claim**: one conditional ``UPDATE`` moves the job ``queued → running`` and stamps
+  a fresh random ``lease``. Zero rows updated means someone else has it, or it is
+  finished or cancelled: return without doing anything. A ``running`` job whose runner
+  died (heartbeat older than ``stale_after_s``) is not claimed here: the reaper
+  (``api.service.recovery``) counts the death, puts it back to ``queued`` and sends it.
 * **Fencing**: every later write says ``WHERE id = :id AND lease = :lease``. A runner
   that lost its lease (it stalled and was taken over) writes nothing and stops at its
   next ``should_stop`` check.
@@ -33,11 +34,11 @@ import socket
 import threading
 import time
 import uuid
-from datetime import UTC, datetime, timedelta
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from sqlalchemy import Update, delete, func, or_, select, update
+from sqlalchemy import Update, delete, func, select, update
 
 from api.service.db import Database, database_for
 from api.service.models import Artifact, Job, JobKind, JobState
@@ -86,21 +87,19 @@ def _now() -> datetime:
     return datetime.now(UTC)
 
 
-def claim(database: Database, job_id: str, stale_after_s: float, worker: str) -> str | None:
-    """Take the job for this runner; the new lease, or None if it is not claimable."""
+def claim(database: Database, job_id: str, worker: str) -> str | None:
+    """Take the queued job for this runner; the new lease, or None if it is not claimable.
+
+    ``error`` is kept: on a queued job it can only be the reaper's note on why its last
+    runner is gone (``... requeued (attempt 2 of 3)``), which stays true while this run
+    lasts; the run's end writes its own.
+    """
     lease = uuid.uuid4().hex
     now = _now()
-    stale = now - timedelta(seconds=stale_after_s)
     with database.write() as s:
         res = s.execute(
             update(Job)
-            .where(
-                Job.id == job_id,
-                or_(
-                    Job.state == JobState.QUEUED,
-                    (Job.state == JobState.RUNNING) & (Job.heartbeat_at < stale),
-                ),
-            )
+            .where(Job.id == job_id, Job.state == JobState.QUEUED)
             .values(
                 state=JobState.RUNNING,
                 lease=lease,
@@ -110,7 +109,6 @@ def claim(database: Database, job_id: str, stale_after_s: float, worker: str) ->
                 started_at=func.coalesce(Job.started_at, now),
                 updated_at=now,
                 version=Job.version + 1,
-                error=None,
             )
             .execution_options(synchronize_session=False)
         )
@@ -462,7 +460,7 @@ def run_job(
     database = database or database_for(settings.db_url)
     store = LocalStore(settings.store_root)
     worker = worker or f"{socket.gethostname()}:{os.getpid()}:{threading.get_ident()}"
-    lease = claim(database, job_id, settings.stale_after_s, worker)
+    lease = claim(database, job_id, worker)
     if lease is None:
         log.info("job %s: not claimable (taken, finished or cancelled)", job_id)
         return None

@@ -13,6 +13,7 @@ from sqlalchemy import select
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Job, JobState, Scene, SceneState, new_id
+from api.service.recovery import settle_dead_runners
 from api.service.runner import (
     _JobReporter,
     claim,
@@ -59,11 +60,11 @@ def _get(db: Database, jid: str) -> Job:
 
 def test_claim_once(database: Database) -> None:
     jid = _job(database)
-    lease = claim(database, jid, 60, "w1")
+    lease = claim(database, jid, "w1")
     assert lease
     job = _get(database, jid)
     assert (job.state, job.lease, job.worker, job.attempts) == ("running", lease, "w1", 1)
-    assert claim(database, jid, 60, "w2") is None
+    assert claim(database, jid, "w2") is None
 
 
 def test_concurrent_claims_have_one_winner(database: Database) -> None:
@@ -73,7 +74,7 @@ def test_concurrent_claims_have_one_winner(database: Database) -> None:
 
     def go(i: int) -> None:
         barrier.wait()
-        leases.append(claim(database, jid, 60, f"w{i}"))
+        leases.append(claim(database, jid, f"w{i}"))
 
     threads = [threading.Thread(target=go, args=(i,)) for i in range(6)]
     for t in threads:
@@ -94,18 +95,23 @@ def test_finished_jobs_are_not_claimable(database: Database, state: str, tmp_pat
     assert job.state == state and job.attempts == 0 and job.version == 1
 
 
-def test_stale_running_job_is_taken_over_and_old_runner_fenced(database: Database) -> None:
+def test_stale_running_job_is_requeued_by_the_reaper_and_old_runner_fenced(
+    database: Database,
+) -> None:
     jid = _job(database)
-    old = claim(database, jid, 60, "dead")
+    old = claim(database, jid, "dead")
     assert old
     settings = make_settings(Path("/nonexistent"), database.url)
     old_reporter = _JobReporter(database, jid, old, settings)
-    assert claim(database, jid, 60, "eager") is None  # heartbeat is fresh: hands off
+    assert claim(database, jid, "eager") is None  # running: hands off
+    assert jid not in settle_dead_runners(database, settings).requeued  # heartbeat is fresh
     with database.write() as s:
         s.get(Job, jid).heartbeat_at = datetime.now(UTC) - timedelta(seconds=120)
-    new = claim(database, jid, 60, "rescuer")
+    assert claim(database, jid, "eager") is None  # a dead runner's job goes through the reaper
+    assert jid in settle_dead_runners(database, settings).requeued
+    new = claim(database, jid, "rescuer")
     assert new and new != old
-    assert _get(database, jid).attempts == 2
+    assert _get(database, jid).attempts == 2 and _get(database, jid).runner_deaths == 1
     # the old runner wakes up: its writes do nothing and it is told to stop
     old_reporter.on_event(
         {
@@ -128,7 +134,7 @@ def test_stale_running_job_is_taken_over_and_old_runner_fenced(database: Databas
 
 def test_progress_is_throttled_and_cancel_is_seen(database: Database) -> None:
     jid = _job(database)
-    lease = claim(database, jid, 60, "w")
+    lease = claim(database, jid, "w")
     assert lease
     settings = make_settings(Path("/nonexistent"), database.url, progress_interval_s=60.0)
     rep = _JobReporter(database, jid, lease, settings)
