@@ -151,3 +151,35 @@ def worker_env(settings: Any, redis_url: str, **extra: str) -> dict[str, str]:
     )
     env.update(extra)
     return env
+
+
+class Workers:
+    """Starts ``glint worker`` processes on demand; stops them all at the end."""
+
+    def __init__(self, server: Any, redis_url: str, log_dir: Path, **env: str) -> None:
+        self.env = worker_env(server.settings, redis_url, **env)
+        self.log_dir = log_dir
+        self.procs: dict[str, WorkerProcess] = {}
+
+    def start(self, name: str, **env: str) -> WorkerProcess:
+        """A new worker process; ``env`` overrides this one's ``GLINT_*`` variables."""
+        w = WorkerProcess(name, {**self.env, **env}, self.log_dir)
+        self.procs[name] = w
+        return w
+
+    def ensure(self, *names: str) -> list[WorkerProcess]:
+        started = [
+            self.start(n)
+            for n in names
+            if n not in self.procs or self.procs[n].proc.poll() is not None
+        ]
+        for w in started:
+            w.wait_ready()
+        return [self.procs[n] for n in names]
+
+    def logs(self) -> str:
+        return "\n".join(w.log() for w in self.procs.values())
+
+    def stop_all(self) -> None:
+        for w in self.procs.values():
+            w.stop()

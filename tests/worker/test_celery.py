@@ -8,7 +8,6 @@ import json
 import re
 import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import httpx
 import pytest
@@ -16,7 +15,7 @@ import pytest
 from api.service.queue import JobQueue
 from tests.api.support import LiveServer, list_all, make_settings, wait_for
 from tests.worker.flow import job, ready_scene, submit, wait_iteration, wait_state
-from tests.worker.support import RedisServer, WorkerProcess, needs_redis, worker_env
+from tests.worker.support import RedisServer, Workers, needs_redis
 
 pytestmark = needs_redis
 
@@ -37,37 +36,6 @@ def server(
     srv = LiveServer(settings, None).start()
     yield srv
     srv.stop()
-
-
-class Workers:
-    """Starts ``glint worker`` processes on demand; stops them all at the end."""
-
-    def __init__(self, server: LiveServer, redis_url: str, log_dir: Path) -> None:
-        self.env = worker_env(server.settings, redis_url)
-        self.log_dir = log_dir
-        self.procs: dict[str, WorkerProcess] = {}
-
-    def start(self, name: str) -> WorkerProcess:
-        w = WorkerProcess(name, self.env, self.log_dir)
-        self.procs[name] = w
-        return w
-
-    def ensure(self, *names: str) -> list[WorkerProcess]:
-        started = [
-            self.start(n)
-            for n in names
-            if n not in self.procs or self.procs[n].proc.poll() is not None
-        ]
-        for w in started:
-            w.wait_ready()
-        return [self.procs[n] for n in names]
-
-    def logs(self) -> str:
-        return "\n".join(w.log() for w in self.procs.values())
-
-    def stop_all(self) -> None:
-        for w in self.procs.values():
-            w.stop()
 
 
 @pytest.fixture(scope="module")
