@@ -33,7 +33,7 @@ from core.scene.views import View
 # Chamfer probes at these fractions of the run (and at its end): evenly spaced in
 # log time, five points in all.
 CHAMFER_FRACTIONS = (1 / 16, 1 / 8, 1 / 4, 1 / 2)
-PROBE_VIEWS = 32  # training views whose rendered depth is back-projected
+PROBE_VIEWS = 16  # training views whose rendered depth is back-projected
 PROBE_MAX_SCALE = 4.0  # small views are rendered up to this much larger for the probe
 PROBE_POINTS = 150_000  # surface points scored (glint eval: 1,000,000 on its mesh)
 CONSISTENT_PX = 1.0  # forward-backward reprojection error counted as consistent

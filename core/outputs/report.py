@@ -15,7 +15,7 @@ from typing import Any
 ERROR_NOTE = (
     "Held-out views; train time excludes evaluation. Geometry: with ground truth, normal "
     "and depth error against the GT maps (same render as PSNR) and the Chamfer distance "
-    "×10² of the rendered surface points (32 training views' depth, 100k points) against "
+    "×10² of the rendered surface points (16 training views' depth, 150k points) against "
     "gt_points at 1/16, 1/8, 1/4, 1/2 of the run and its end — a quick stand-in for "
     "`glint eval`'s TSDF-mesh figure; without ground truth, depth–normal consistency and "
     "multi-view consistency (named so: they are not errors against truth)."
