@@ -42,6 +42,7 @@ STATUS_FIELDS = (
     "metrics",
     "elapsed_s",
     "eta_s",
+    "time_left_s",
     "error",
     "version",
 )

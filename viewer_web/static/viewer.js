@@ -269,8 +269,24 @@
     state.lastJobState = job.state;
     $("job-progress").style.width = `${Math.round((job.progress || 0) * 100)}%`;
     $("job-iter").textContent = `${job.iteration} / ${job.total_iterations}`;
-    const psnr = job.metrics && job.metrics.psnr;
-    $("job-psnr").textContent = psnr ? `PSNR ${psnr.toFixed(2)} dB` : "";
+    $("job-psnr").textContent = qualityText(job);
+  }
+
+  // The latest held-out figures: image error, then geometry error (or consistency
+  // when the scene has no ground truth), then what is left of a time budget.
+  function qualityText(job) {
+    const m = job.metrics || {};
+    const parts = [];
+    if (m.psnr != null) parts.push(`PSNR ${m.psnr.toFixed(2)} dB`);
+    if (m.normal_error_deg != null) parts.push(`normal err ${m.normal_error_deg.toFixed(1)}°`);
+    if (m.cd_x100 != null) state.lastCd = m.cd_x100; // probed at a few points of the run
+    if (state.lastCd != null) parts.push(`CD×10² ${state.lastCd.toFixed(3)}`);
+    if (m.depth_normal_consistency_deg != null) parts.push(`depth–normal ${m.depth_normal_consistency_deg.toFixed(1)}°`);
+    if (job.time_left_s != null && job.state === "running") {
+      const s = Math.round(job.time_left_s);
+      parts.push(`${Math.floor(s / 60)}m${String(s % 60).padStart(2, "0")}s left`);
+    }
+    return parts.join(" · ");
   }
 
   function onMessage(ev) {
