@@ -76,7 +76,12 @@ class Settled:
 
 
 def settle_dead_runners(
-    database: Database, settings: Settings, *, all_running: bool = False
+    database: Database,
+    settings: Settings,
+    *,
+    all_running: bool = False,
+    job_id: str | None = None,
+    runner: str | None = None,
 ) -> Settled:
     """``running`` jobs whose runner died: back to ``queued``, or ``failed`` at the limit.
 
@@ -86,9 +91,18 @@ def settle_dead_runners(
     the ``max_attempts``-th fails the job, and a job whose cancel was requested ends
     ``cancelled``. Clearing the lease fences the old runner off, should it be alive
     after all (a stall, a partition): its next write matches no row and it stops.
+
+    ``job_id`` and ``runner`` (a prefix of the job's ``worker``) narrow it to one job of
+    one runner known to be dead, whatever its heartbeat says: the local queue's child
+    process that exited while holding it.
     """
     now = _now()
     lost = Job.state == JobState.RUNNING
+    if job_id is not None:
+        lost = lost & (Job.id == job_id)
+    if runner is not None:
+        lost = lost & Job.worker.startswith(runner, autoescape=True)
+        all_running = True
     if not all_running:
         cutoff = now - timedelta(seconds=settings.stale_after_s)
         lost = lost & or_(Job.heartbeat_at < cutoff, Job.heartbeat_at.is_(None))

@@ -51,7 +51,7 @@ class Settings(BaseSettings):
     queue_backend: Literal["auto", "local", "celery"] = Field(
         "auto",
         description="'auto': 'celery' when redis_url is set, else 'local'; 'local': jobs "
-        "run in a thread of the API process (embedded, no external service); 'celery': "
+        "run in child processes of the API (embedded, no external service); 'celery': "
         "Celery workers on the Redis broker",
     )
     auto_migrate: bool = Field(True, description="run Alembic migrations when the app starts")
@@ -107,6 +107,13 @@ class Settings(BaseSettings):
     # --- validation and jobs -------------------------------------------------------
     validation_concurrency: int = Field(1, ge=1, description="scenes loaded at once")
     local_workers: int = Field(1, ge=1, description="jobs run at once by the local queue")
+    embedded_job_nice: int = Field(
+        10,
+        ge=0,
+        le=19,
+        description="niceness added to the local queue's job processes (0 = as the API): "
+        "training yields the CPU to the API's requests",
+    )
     progress_interval_s: float = Field(0.5, gt=0, description="min seconds between DB writes")
     cancel_poll_s: float = Field(0.5, gt=0, description="min seconds between cancel checks")
     heartbeat_s: float = Field(

@@ -1,0 +1,297 @@
+"""Job-status latency under load, with and without a job training on the embedded queue.
+
+    python -m bench.api_load [--clients 100] [--duration 20] [--with-job | --without-job]
+                             [--iterations 3000] [--size 64] [--views 24] [--repo DIR]
+
+Starts ``glint serve`` as it ships by default (no ``GLINT_REDIS_URL``: SQLite and the
+embedded queue) on a free port with a temporary data dir, creates a key with
+``glint keys create``, uploads a synthetic scene (``--size`` px, ``--views`` views) and
+commits it. Then, per mode, ``--clients`` concurrent keep-alive clients (httpx, asyncio,
+one process) poll ``GET /v1/jobs/{id}`` for ``--duration`` seconds:
+
+* ``without job``: the job polled was cancelled before it started; nothing trains;
+* ``with job``: the job trains (``--iterations``) throughout the window; the row says how
+  many iterations it made meanwhile (``still running`` unless it finished too early).
+
+Prints one Markdown row per mode: requests/s, errors (non-200 answers and transport
+errors, e.g. timeouts), client p50/p90/p99/max latency and the server's own p99 (its
+``Server-Timing`` header, time in the app until the headers leave). Client and server
+share the machine's cores. ``--repo`` serves another checkout's code (e.g. a
+``git worktree`` of an older commit) with this benchmark's client.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import io
+import os
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import httpx
+
+REPO = Path(__file__).resolve().parents[1]
+CLI = "import sys; from core.cli import main; sys.exit(main(sys.argv[1:]))"
+HEAD = (
+    "| mode | clients | s | requests | errors | req/s | p50 ms | p90 ms | p99 ms | max ms "
+    "| server p99 ms | job |"
+)
+RULE = "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def percentile(values: list[float], q: float) -> float:
+    """The ``q``-quantile (0..1) of ``values`` (nearest rank); NaN when empty."""
+    if not values:
+        return float("nan")
+    ordered = sorted(values)
+    return ordered[min(len(ordered) - 1, max(0, round(q * len(ordered)) - 1))]
+
+
+@dataclass
+class Load:
+    mode: str
+    clients: int
+    seconds: float
+    requests: int
+    errors: int
+    latencies: list[float]  # seconds, answered requests
+    server_ms: list[float]
+    job: str = "-"
+
+    def row(self) -> str:
+        ms = [t * 1e3 for t in self.latencies]
+        return (
+            f"| {self.mode} | {self.clients} | {self.seconds:.0f} | {self.requests} | "
+            f"{self.errors} | {self.requests / self.seconds:.0f} | {percentile(ms, 0.5):.1f} | "
+            f"{percentile(ms, 0.9):.1f} | {percentile(ms, 0.99):.1f} | "
+            f"{max(ms, default=float('nan')):.1f} | {percentile(self.server_ms, 0.99):.1f} | "
+            f"{self.job} |"
+        )
+
+
+class Server:
+    """``glint serve`` with the shipped defaults, in a temporary data dir."""
+
+    def __init__(self, data_dir: Path, repo: Path) -> None:
+        self.data_dir, self.repo = data_dir, repo
+        self.port = free_port()
+        self.url = f"http://127.0.0.1:{self.port}"
+        self.env = {k: v for k, v in os.environ.items() if not k.startswith("GLINT_")}
+        self.env.update(PYTHONPATH=str(repo), GLINT_DATA_DIR=str(data_dir))
+        self.log = data_dir / "serve.log"
+        self.proc: subprocess.Popen[bytes] | None = None
+
+    def glint(self, *args: str) -> str:
+        done = subprocess.run(
+            [sys.executable, "-c", CLI, *args],
+            cwd=self.repo,
+            env=self.env,
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        return done.stdout
+
+    def start(self) -> Server:
+        self.proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-c",
+                CLI,
+                "serve",
+                "--port",
+                str(self.port),
+                "--log-level",
+                "warning",
+            ],
+            cwd=self.repo,
+            env=self.env,
+            stdout=open(self.log, "ab"),  # noqa: SIM115 (the process owns it)
+            stderr=subprocess.STDOUT,
+        )
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            if self.proc.poll() is not None:
+                break
+            try:
+                if httpx.get(f"{self.url}/v1/health", timeout=2).status_code == 200:
+                    return self
+            except httpx.HTTPError:
+                pass
+            time.sleep(0.2)
+        self.stop()
+        raise RuntimeError(f"glint serve did not come up:\n{self.log.read_text()[-3000:]}")
+
+    def stop(self) -> None:
+        if self.proc is not None and self.proc.poll() is None:
+            self.proc.terminate()
+            try:
+                self.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait()
+
+
+def upload_scene(c: httpx.Client, root: Path, size: int, views: int) -> str:
+    from core.scene.synthetic import write_synthetic_scene
+
+    n_test = max(1, views // 6)
+    folder = write_synthetic_scene(
+        root, "sphere", "glossy", n_train=views - n_test, n_test=n_test, size=size
+    )
+    files = [
+        ("files", (p.relative_to(folder).as_posix(), io.BytesIO(p.read_bytes()), "application/x"))
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    ]
+    r = c.post("/v1/scenes", json={"name": "load"})
+    r.raise_for_status()
+    scene_id = r.json()["id"]
+    c.post(f"/v1/scenes/{scene_id}/files", files=files).raise_for_status()
+    r = c.post(f"/v1/scenes/{scene_id}/commit", timeout=300)
+    r.raise_for_status()
+    assert r.json()["state"] == "ready", r.text
+    return str(scene_id)
+
+
+def submit(c: httpx.Client, scene_id: str, iterations: int) -> str:
+    config = {
+        "iterations": iterations,
+        "eval": {"every": max(iterations // 4, 1), "views": 1},
+        "checkpoint_every": max(iterations // 4, 1),
+        "outputs": {"mesh": False},
+    }
+    r = c.post("/v1/jobs", json={"scene_id": scene_id, "config": config})
+    r.raise_for_status()
+    return str(r.json()["id"])
+
+
+def wait_job(c: httpx.Client, job_id: str, ok: Any, timeout: float = 300.0) -> dict[str, Any]:
+    deadline = time.monotonic() + timeout
+    while True:
+        j = c.get(f"/v1/jobs/{job_id}").json()
+        if ok(j):
+            return dict(j)
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"job {job_id} is {j['state']} at {j['iteration']}: {j['error']}")
+        time.sleep(0.2)
+
+
+async def load(
+    url: str, key: str, job_id: str, clients: int, duration: float, timeout: float, mode: str
+) -> Load:
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    headers = {"Authorization": f"Bearer {key}"}
+    path = f"/v1/jobs/{job_id}"
+    out = Load(mode, clients, duration, 0, 0, [], [])
+    async with httpx.AsyncClient(
+        base_url=url, headers=headers, limits=limits, timeout=timeout
+    ) as client:
+        await asyncio.gather(*(client.get(path) for _ in range(clients)), return_exceptions=True)
+        start = time.perf_counter()
+        deadline = start + duration
+
+        async def poll() -> None:
+            while time.perf_counter() < deadline:
+                t0 = time.perf_counter()
+                try:
+                    r = await client.get(path)
+                except httpx.HTTPError:
+                    out.errors += 1
+                    out.requests += 1
+                    continue
+                out.requests += 1
+                if r.status_code != 200:
+                    out.errors += 1
+                    continue
+                out.latencies.append(time.perf_counter() - t0)
+                timing = r.headers.get("server-timing", "")
+                if "dur=" in timing:
+                    out.server_ms.append(float(timing.split("dur=")[1].split(",")[0]))
+
+        await asyncio.gather(*(poll() for _ in range(clients)))
+        out.seconds = time.perf_counter() - start
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
+    p.add_argument("--clients", type=int, default=100)
+    p.add_argument("--duration", type=float, default=20.0, help="seconds of load per mode")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--with-job", action="store_true", help="only the mode with a job")
+    mode.add_argument("--without-job", action="store_true", help="only the mode without")
+    p.add_argument("--iterations", type=int, default=3000, help="of the training job")
+    p.add_argument("--size", type=int, default=64, help="synthetic scene image side, px")
+    p.add_argument("--views", type=int, default=24, help="synthetic scene views")
+    p.add_argument("--timeout", type=float, default=30.0, help="per request, seconds")
+    p.add_argument("--repo", type=Path, default=REPO, help="checkout whose code is served")
+    args = p.parse_args(argv)
+    modes = ["without job", "with job"]
+    if args.with_job:
+        modes = ["with job"]
+    elif args.without_job:
+        modes = ["without job"]
+
+    rows: list[Load] = []
+    with tempfile.TemporaryDirectory(prefix="glint-load-") as tmp:
+        data_dir = Path(tmp) / "data"
+        data_dir.mkdir()
+        server = Server(data_dir, args.repo.resolve())
+        key = server.glint("keys", "create", "bench").split()[0]
+        server.start()
+        try:
+            headers = {"Authorization": f"Bearer {key}"}
+            with httpx.Client(base_url=server.url, headers=headers, timeout=60) as c:
+                scene_id = upload_scene(c, Path(tmp) / "scene", args.size, args.views)
+                for m in modes:
+                    job_id = submit(c, scene_id, args.iterations)
+                    if m == "without job":
+                        c.post(f"/v1/jobs/{job_id}/cancel").raise_for_status()
+                        wait_job(c, job_id, lambda j: j["state"] == "cancelled")
+                        time.sleep(2.0)  # let the queue's process for it come and go
+                    else:
+                        wait_job(  # training, past its first (slower) steps
+                            c, job_id, lambda j: j["state"] == "running" and j["iteration"] >= 10
+                        )
+                        before = c.get(f"/v1/jobs/{job_id}").json()["iteration"]
+                    row = asyncio.run(
+                        load(server.url, key, job_id, args.clients, args.duration, args.timeout, m)
+                    )
+                    if m == "with job":
+                        after = c.get(f"/v1/jobs/{job_id}").json()
+                        state = "still running" if after["state"] == "running" else after["state"]
+                        row.job = f"{after['iteration'] - before} iterations, {state}"
+                        c.post(f"/v1/jobs/{job_id}/cancel")
+                        wait_job(c, job_id, lambda j: j["state"] not in ("queued", "running"))
+                    rows.append(row)
+        finally:
+            server.stop()
+    when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")
+    print(
+        f"GET /v1/jobs/{{id}}, {args.clients} concurrent clients, {args.duration:.0f} s per mode; "
+        f"glint serve (SQLite, embedded queue) from {args.repo}; {os.cpu_count()} cores; {when}"
+    )
+    print(HEAD)
+    print(RULE)
+    for row in rows:
+        print(row.row())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

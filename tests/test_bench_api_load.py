@@ -1,0 +1,23 @@
+"""``bench/api_load.py`` runs end to end (a few clients, two seconds) so it cannot rot."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench.api_load import main, percentile
+
+
+def test_percentile_is_nearest_rank() -> None:
+    values = [float(v) for v in range(1, 101)]
+    assert percentile(values, 0.5) == 50.0 and percentile(values, 0.99) == 99.0
+    assert percentile([3.0], 0.99) == 3.0
+
+
+def test_api_load_smoke(capsys: pytest.CaptureFixture[str]) -> None:
+    args = ["--clients", "5", "--duration", "2", "--without-job", "--size", "24"]
+    assert main([*args, "--views", "6"]) == 0
+    out = capsys.readouterr().out
+    rows = [line for line in out.splitlines() if line.startswith("| without job |")]
+    assert len(rows) == 1, out
+    cells = [c.strip() for c in rows[0].strip("|").split("|")]
+    assert cells[1] == "5" and int(cells[3]) > 0 and cells[4] == "0", out  # answers, no errors
