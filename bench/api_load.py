@@ -1,19 +1,23 @@
 """Job-status latency under load, with and without a job training on the embedded queue.
 
     python -m bench.api_load [--clients 100] [--duration 20] [--with-job | --without-job]
-                             [--iterations 3000] [--size 64] [--views 24] [--repo DIR]
+                             [--interval 0[,1...]] [--iterations 5000] [--size 64]
+                             [--views 24] [--repo DIR]
 
 Starts ``glint serve`` as it ships by default (no ``GLINT_REDIS_URL``: SQLite and the
 embedded queue) on a free port with a temporary data dir, creates a key with
 ``glint keys create``, uploads a synthetic scene (``--size`` px, ``--views`` views) and
-commits it. Then, per mode, ``--clients`` concurrent keep-alive clients (httpx, asyncio,
-one process) poll ``GET /v1/jobs/{id}`` for ``--duration`` seconds:
+commits it. Then, per mode and interval, ``--clients`` concurrent keep-alive clients
+(httpx, asyncio, one process) poll ``GET /v1/jobs/{id}`` for ``--duration`` seconds, each
+back to back (``--interval 0``, the default: a closed loop, whose latency is the number
+of clients over the throughput) or at most once per ``--interval`` seconds (a status
+poller's pace; clients start spread over the first interval):
 
 * ``without job``: the job polled was cancelled before it started; nothing trains;
 * ``with job``: the job trains (``--iterations``) throughout the window; the row says how
   many iterations it made meanwhile (``still running`` unless it finished too early).
 
-Prints one Markdown row per mode: requests/s, errors (non-200 answers and transport
+Prints one Markdown row per mode and interval: requests/s, errors (non-200 answers and transport
 errors, e.g. timeouts), client p50/p90/p99/max latency and the server's own p99 (its
 ``Server-Timing`` header, time in the app until the headers leave). Client and server
 share the machine's cores. ``--repo`` serves another checkout's code (e.g. a
@@ -41,10 +45,10 @@ import httpx
 REPO = Path(__file__).resolve().parents[1]
 CLI = "import sys; from core.cli import main; sys.exit(main(sys.argv[1:]))"
 HEAD = (
-    "| mode | clients | s | requests | errors | req/s | p50 ms | p90 ms | p99 ms | max ms "
-    "| server p99 ms | job |"
+    "| mode | clients | interval s | s | requests | errors | req/s | p50 ms | p90 ms | p99 ms "
+    "| max ms | server p99 ms | job |"
 )
-RULE = "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+RULE = "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
 
 
 def free_port() -> int:
@@ -65,6 +69,7 @@ def percentile(values: list[float], q: float) -> float:
 class Load:
     mode: str
     clients: int
+    interval: float
     seconds: float
     requests: int
     errors: int
@@ -75,9 +80,9 @@ class Load:
     def row(self) -> str:
         ms = [t * 1e3 for t in self.latencies]
         return (
-            f"| {self.mode} | {self.clients} | {self.seconds:.0f} | {self.requests} | "
-            f"{self.errors} | {self.requests / self.seconds:.0f} | {percentile(ms, 0.5):.1f} | "
-            f"{percentile(ms, 0.9):.1f} | {percentile(ms, 0.99):.1f} | "
+            f"| {self.mode} | {self.clients} | {self.interval:g} | {self.seconds:.0f} | "
+            f"{self.requests} | {self.errors} | {self.requests / self.seconds:.0f} | "
+            f"{percentile(ms, 0.5):.1f} | {percentile(ms, 0.9):.1f} | {percentile(ms, 0.99):.1f} | "
             f"{max(ms, default=float('nan')):.1f} | {percentile(self.server_ms, 0.99):.1f} | "
             f"{self.job} |"
         )
@@ -192,12 +197,19 @@ def wait_job(c: httpx.Client, job_id: str, ok: Any, timeout: float = 300.0) -> d
 
 
 async def load(
-    url: str, key: str, job_id: str, clients: int, duration: float, timeout: float, mode: str
+    url: str,
+    key: str,
+    job_id: str,
+    clients: int,
+    duration: float,
+    timeout: float,
+    mode: str,
+    interval: float = 0.0,
 ) -> Load:
     limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
     headers = {"Authorization": f"Bearer {key}"}
     path = f"/v1/jobs/{job_id}"
-    out = Load(mode, clients, duration, 0, 0, [], [])
+    out = Load(mode, clients, interval, duration, 0, 0, [], [])
     async with httpx.AsyncClient(
         base_url=url, headers=headers, limits=limits, timeout=timeout
     ) as client:
@@ -205,9 +217,17 @@ async def load(
         start = time.perf_counter()
         deadline = start + duration
 
-        async def poll() -> None:
-            while time.perf_counter() < deadline:
+        async def poll(offset: float) -> None:
+            await asyncio.sleep(offset)
+            next_at = time.perf_counter()
+            while True:
+                wait = next_at - time.perf_counter()
+                if wait > 0:
+                    await asyncio.sleep(wait)
                 t0 = time.perf_counter()
+                if t0 >= deadline:
+                    return
+                next_at = t0 + interval
                 try:
                     r = await client.get(path)
                 except httpx.HTTPError:
@@ -223,7 +243,7 @@ async def load(
                 if "dur=" in timing:
                     out.server_ms.append(float(timing.split("dur=")[1].split(",")[0]))
 
-        await asyncio.gather(*(poll() for _ in range(clients)))
+        await asyncio.gather(*(poll(interval * i / clients) for i in range(clients)))
         out.seconds = time.perf_counter() - start
     return out
 
@@ -235,12 +255,19 @@ def main(argv: list[str] | None = None) -> int:
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--with-job", action="store_true", help="only the mode with a job")
     mode.add_argument("--without-job", action="store_true", help="only the mode without")
-    p.add_argument("--iterations", type=int, default=3000, help="of the training job")
+    p.add_argument(
+        "--interval",
+        default="0",
+        help="seconds between one client's polls, comma-separated for several runs per mode "
+        "(0: back to back)",
+    )
+    p.add_argument("--iterations", type=int, default=5000, help="of the training job")
     p.add_argument("--size", type=int, default=64, help="synthetic scene image side, px")
     p.add_argument("--views", type=int, default=24, help="synthetic scene views")
     p.add_argument("--timeout", type=float, default=30.0, help="per request, seconds")
     p.add_argument("--repo", type=Path, default=REPO, help="checkout whose code is served")
     args = p.parse_args(argv)
+    intervals = [float(v) for v in args.interval.split(",")]
     modes = ["without job", "with job"]
     if args.with_job:
         modes = ["with job"]
@@ -268,17 +295,29 @@ def main(argv: list[str] | None = None) -> int:
                         wait_job(  # training, past its first (slower) steps
                             c, job_id, lambda j: j["state"] == "running" and j["iteration"] >= 10
                         )
+                    for interval in intervals:
                         before = c.get(f"/v1/jobs/{job_id}").json()["iteration"]
-                    row = asyncio.run(
-                        load(server.url, key, job_id, args.clients, args.duration, args.timeout, m)
-                    )
+                        row = asyncio.run(
+                            load(
+                                server.url,
+                                key,
+                                job_id,
+                                args.clients,
+                                args.duration,
+                                args.timeout,
+                                m,
+                                interval,
+                            )
+                        )
+                        if m == "with job":
+                            after = c.get(f"/v1/jobs/{job_id}").json()
+                            state = after["state"]
+                            state = "still running" if state == "running" else state
+                            row.job = f"{after['iteration'] - before} iterations, {state}"
+                        rows.append(row)
                     if m == "with job":
-                        after = c.get(f"/v1/jobs/{job_id}").json()
-                        state = "still running" if after["state"] == "running" else after["state"]
-                        row.job = f"{after['iteration'] - before} iterations, {state}"
                         c.post(f"/v1/jobs/{job_id}/cancel")
                         wait_job(c, job_id, lambda j: j["state"] not in ("queued", "running"))
-                    rows.append(row)
         finally:
             server.stop()
     when = datetime.now(UTC).strftime("%Y-%m-%d %H:%M UTC")

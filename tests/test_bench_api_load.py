@@ -15,9 +15,11 @@ def test_percentile_is_nearest_rank() -> None:
 
 def test_api_load_smoke(capsys: pytest.CaptureFixture[str]) -> None:
     args = ["--clients", "5", "--duration", "2", "--without-job", "--size", "24"]
-    assert main([*args, "--views", "6"]) == 0
+    assert main([*args, "--views", "6", "--interval", "0,0.5"]) == 0
     out = capsys.readouterr().out
     rows = [line for line in out.splitlines() if line.startswith("| without job |")]
-    assert len(rows) == 1, out
-    cells = [c.strip() for c in rows[0].strip("|").split("|")]
-    assert cells[1] == "5" and int(cells[3]) > 0 and cells[4] == "0", out  # answers, no errors
+    assert len(rows) == 2, out
+    for row, interval in zip(rows, ("0", "0.5"), strict=True):
+        cells = [c.strip() for c in row.strip("|").split("|")]
+        assert cells[1] == "5" and cells[2] == interval, out
+        assert int(cells[4]) > 0 and cells[5] == "0", out  # answers, no errors
