@@ -7,8 +7,9 @@ iterations that fit in the time left, predicted from the measured cost of a step
 Cost model: a step costs ``k · factor[phase] · n_gaussians`` seconds. ``k`` is measured
 (an average over recent steps, per phase) and the factor of a phase not reached yet
 comes from :data:`PHASE_COST`, measured on the dev scenes: per Gaussian, a
-single-view step costs about 1.35× an RGB step (normals, depth and Eq. 11) and a
-multi-view step about 1.75× (a second G-buffer for the neighbour). The evaluations
+single-view step costs about 1.4× an RGB step (normals, depth and Eq. 11) and a
+multi-view step about 2× (a second G-buffer for the neighbour). The count itself is
+expected to grow while densification is still ahead (:data:`DENSIFY_GROWTH`). The evaluations
 and checkpoints a run of a given length still makes are charged at their measured
 cost (the trainer's ``overhead``). The plan is redone every :data:`REPLAN_FRACTION` of the budget,
 so it follows the Gaussian count as densification changes it.
@@ -25,12 +26,16 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
-from core.config import TrainConfig
+from core.config import REFERENCE_ITERATIONS, TrainConfig
 from core.model.schedule import Marks
 
-# Per-Gaussian step cost relative to the RGB phase (teapot_gold 128², CPU backend,
-# 1500 iterations: 4.0, 5.5 and 7.0 µs per Gaussian per step).
-PHASE_COST = {"rgb": 1.0, "geometry": 1.35, "multiview": 1.75}
+# Per-Gaussian step cost relative to the RGB phase (teapot_gold 128², CPU backend:
+# about 4.0, 5.5 and 7.8 µs per Gaussian per step).
+PHASE_COST = {"rgb": 1.0, "geometry": 1.4, "multiview": 2.0}
+# How much densification grows the Gaussian count over its whole window (start to stop):
+# about 2× on the dev scenes at 1500 iterations (teapot_gold 20k → 39k, spot_plastic
+# 20k → 41k). A step's cost follows the count, so the plan charges the growth ahead.
+DENSIFY_GROWTH = 1.0
 WARMUP_STEPS = 5  # the first steps after a start or resume carry one-off costs
 REPLAN_FRACTION = 0.02  # re-plan every 2% of the budget
 EMA = 0.1  # weight of the newest step in a phase's cost average
@@ -39,6 +44,20 @@ EMA = 0.1  # weight of the newest step in a phase's cost average
 def _phase_marks(cfg: TrainConfig, n: int) -> list[int]:
     m = Marks.of(cfg.model_copy(update={"iterations": n}))
     return [m.geometry_start, m.multiview_start]
+
+
+def _growth(cfg: TrainConfig, n: int, iteration: int, at: float) -> float:
+    """Expected Gaussian count at step ``at`` over the count at ``iteration``: densification
+    still ahead grows it, by DENSIFY_GROWTH over a whole densification window."""
+    d = cfg.densify
+    if not d.enabled:
+        return 1.0
+    scale = n / REFERENCE_ITERATIONS
+    start, stop = d.start * scale, d.stop * scale
+    if stop <= start or iteration >= stop:
+        return 1.0
+    ahead = max(0.0, min(at, stop) - max(iteration, start)) / (stop - start)
+    return 1.0 + DENSIFY_GROWTH * ahead
 
 
 def phase_of(marks: list[int], iteration: int) -> str:
@@ -108,7 +127,8 @@ class TimeBudget:
         total = 0.0
         for name, a, b in zip(("rgb", "geometry", "multiview"), bounds, bounds[1:], strict=False):
             if b > a:
-                cost = self.step_cost(name, n_gaussians)
+                count = n_gaussians * _growth(cfg, n, iteration, (a + b) / 2)
+                cost = self.step_cost(name, round(count))
                 total += (b - a) * (cost or 0.0)
         return total + overhead(n, total)
 
