@@ -142,6 +142,7 @@ def chamfer_distance(
     pred_normals: np.ndarray | None = None,
     gt_normals: np.ndarray | None = None,
     gt_tree: Any = None,
+    cap: float | None = None,
 ) -> dict[str, float | int]:
     """Point-to-point Chamfer distance, both directions, the data README's recipe.
 
@@ -153,7 +154,9 @@ def chamfer_distance(
     (recall). ``gt_seen`` (bool per GT point) adds the same numbers against the
     GT points seen in some training view (``*_seen``); with both normal sets,
     ``normal_consistency`` is the mean |n_p · n_g| over P→G nearest pairs. ``gt_tree``:
-    a ``cKDTree`` of ``gt`` already built (a caller scoring many point sets).
+    a ``cKDTree`` of ``gt`` already built (a caller scoring many point sets). ``cap``:
+    nearest-neighbour distances above it count as ``cap`` (bounded searches: a cloud far
+    from the surface otherwise costs seconds to score; off by default).
     """
     from scipy.spatial import cKDTree
 
@@ -177,8 +180,13 @@ def chamfer_distance(
         nan = math.nan
         out.update(cd=nan, cd_x100=nan, p2g=nan, g2p=nan, precision=0.0, recall=0.0, fscore=0.0)
         return out
-    d_pg, i_pg = (gt_tree if gt_tree is not None else cKDTree(G)).query(P, workers=-1)
-    d_gp, _ = cKDTree(P).query(G, workers=-1)
+    bound = {} if cap is None else {"distance_upper_bound": float(cap)}
+    tree = gt_tree if gt_tree is not None else cKDTree(G)
+    d_pg, i_pg = tree.query(P, workers=-1, **bound)
+    d_gp, _ = cKDTree(P).query(G, workers=-1, **bound)
+    if cap is not None:  # misses come back as inf (and index len(G))
+        i_pg = np.minimum(i_pg, len(G) - 1)
+        d_pg, d_gp = np.minimum(d_pg, cap), np.minimum(d_gp, cap)
 
     def summary(d_pg: np.ndarray, d_gp: np.ndarray, suffix: str) -> None:
         p2g, g2p = float(d_pg.mean()), float(d_gp.mean())
