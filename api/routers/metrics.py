@@ -10,8 +10,6 @@ last rows always kept) instead.
 
 from __future__ import annotations
 
-import json
-import math
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Path, Query
@@ -22,8 +20,10 @@ from api.pages import Limit, Offset
 from api.problems import responses
 from api.routers.jobs import owned_job
 from api.schemas import Page
+from api.service.runner import json_safe
 from api.service.store import job_run_key
 from api.strict_json import StrictJsonRoute
+from core.outputs.report import read_metrics
 
 router = APIRouter(prefix="/jobs", tags=["jobs"], route_class=StrictJsonRoute)
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]
@@ -37,30 +37,6 @@ class MetricsPage(Page[dict[str, Any]]):
         "(no ground truth: depth-normal and multi-view consistency) or null (no rows yet)"
     )
     time_budget_s: float | None = Field(description="the job's time budget, if it has one")
-
-
-def _clean(value: Any) -> Any:
-    """NaN/Inf (which JSON cannot carry) as null."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _clean(v) for k, v in value.items()}
-    if isinstance(value, list):
-        return [_clean(v) for v in value]
-    return value
-
-
-def _read_rows(text: str) -> list[dict[str, Any]]:
-    rows = []
-    for line in text.splitlines():
-        line = line.strip()
-        if not line:
-            continue
-        try:
-            rows.append(json.loads(line))
-        except json.JSONDecodeError:  # the last line of a run that is writing it
-            break
-    return rows
 
 
 def thin(rows: list[dict[str, Any]], points: int) -> list[dict[str, Any]]:
@@ -96,7 +72,7 @@ def job_metrics(
     budget = (job.config or {}).get("time_budget")
     session.rollback()  # done with the database; the file read may take a moment
     path = store.path(f"{job_run_key(job_id)}/{METRICS_FILE}")
-    rows = _read_rows(path.read_text()) if path.is_file() else []
+    rows = read_metrics(path)
     geometry = next((r["geometry"] for r in reversed(rows) if r.get("geometry")), None)
     limit = min(limit, settings.page_size_max)
     total = len(rows)
@@ -105,7 +81,7 @@ def job_metrics(
     else:
         rows = rows[offset : offset + limit]
     return MetricsPage(
-        items=[_clean(r) for r in rows],
+        items=[json_safe(r) for r in rows],
         total=total,
         limit=limit,
         offset=offset,

@@ -15,8 +15,9 @@ import numpy as np
 import torch
 
 from core.evaluation.metrics import depth_error, normal_angle_error_deg
+from core.model.frame import Frame
 from core.model.trained import TrainedModel
-from core.scene.groundtruth import load_ground_truth
+from core.scene.groundtruth import GroundTruth, load_ground_truth
 from core.scene.views import View
 
 if TYPE_CHECKING:
@@ -24,6 +25,26 @@ if TYPE_CHECKING:
 
 DEFAULT_CHAMFER_POINTS = 1_000_000  # the data README's sampling floor is stated for 1M
 SURFACE_ALPHA = 0.5  # pixels the model covers at least this much are scored
+
+
+def nanmean(xs: Sequence[float]) -> float:
+    """Mean of the values that are not NaN (NaN when none is)."""
+    kept = [x for x in xs if not math.isnan(x)]
+    return float(np.mean(kept)) if kept else math.nan
+
+
+def frame_geometry_error(frame: Frame, gt: GroundTruth) -> dict[str, float]:
+    """Normal angle (°) and depth error (abs, rel) of one render against its GT maps,
+    over the pixels both cover (the model at least SURFACE_ALPHA)."""
+    depth, valid = frame.depth()
+    mask = gt.mask.to(depth.device) & valid & (frame.gbuffer.alpha > SURFACE_ALPHA)
+    n_world = frame.world_normals()
+    de = depth_error(depth, gt.depth.to(depth), mask)
+    return {
+        "normal_error_deg": normal_angle_error_deg(n_world, gt.normal_world.to(n_world), mask),
+        "depth_abs_error": de["abs"],
+        "depth_rel_error": de["rel"],
+    }
 
 
 @torch.no_grad()
@@ -34,33 +55,17 @@ def geometry_errors(
     None when the scene ships no GT maps."""
     if scene_root is None:
         return None
-    angles, abs_err, rel_err, n = [], [], [], 0
+    per_view = []
     for v in views:
         gt = load_ground_truth(Path(scene_root), v)
-        if gt is None:
-            continue
-        frame = model.render(v.camera, ("depth", "normal"))
-        depth, valid = frame.depth()
-        mask = gt.mask.to(depth.device) & valid & (frame.gbuffer.alpha > SURFACE_ALPHA)
-        n_world = frame.world_normals()
-        angles.append(normal_angle_error_deg(n_world, gt.normal_world.to(n_world), mask))
-        de = depth_error(depth, gt.depth.to(depth), mask)
-        abs_err.append(de["abs"])
-        rel_err.append(de["rel"])
-        n += 1
-    if n == 0:
+        if gt is not None:
+            per_view.append(frame_geometry_error(model.render(v.camera, ("depth", "normal")), gt))
+    if not per_view:
         return None
-
-    def mean(xs: list[float]) -> float:
-        xs = [x for x in xs if not math.isnan(x)]
-        return float(np.mean(xs)) if xs else math.nan
-
-    return {
-        "views": n,
-        "normal_error_deg": mean(angles),
-        "depth_abs_error": mean(abs_err),
-        "depth_rel_error": mean(rel_err),
-    }
+    out: dict[str, Any] = {"views": len(per_view)}
+    for key in ("normal_error_deg", "depth_abs_error", "depth_rel_error"):
+        out[key] = nanmean([e[key] for e in per_view])
+    return out
 
 
 def load_gt_points(scene_root: Path | None) -> dict[str, np.ndarray] | None:

@@ -21,8 +21,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from core.evaluation.geometry import SURFACE_ALPHA, load_gt_points
-from core.evaluation.metrics import depth_error, normal_angle_error_deg, psnr, ssim_srgb
+from core.evaluation.geometry import (
+    SURFACE_ALPHA,
+    frame_geometry_error,
+    load_gt_points,
+    nanmean,
+)
+from core.evaluation.metrics import normal_angle_error_deg, psnr, ssim_srgb
 from core.model.frame import Frame
 from core.model.trained import TrainedModel
 from core.render.depth_geometry import bilinear_lookup, normals_from_depth, project_in_front
@@ -90,11 +95,6 @@ def nearest_view(camera: Camera, candidates: Sequence[View]) -> int:
     return int(np.argmax(dots))
 
 
-def _mean(xs: list[float]) -> float:
-    xs = [x for x in xs if not math.isnan(x)]
-    return float(np.mean(xs)) if xs else math.nan
-
-
 class ProgressEvaluator:
     """Scores a live model on a few held-out views; geometry against truth when known."""
 
@@ -126,7 +126,8 @@ class ProgressEvaluator:
     def images_and_geometry(self, model: TrainedModel) -> dict[str, float]:
         """PSNR/SSIM and per-pixel geometry error (or consistency), one render per view."""
         bg = model.background
-        ps, ss, ang, dabs, drel, dn, mv_med, mv_in = ([] for _ in range(8))
+        ps, ss, dn, mv_med, mv_in = ([] for _ in range(5))
+        errors: list[dict[str, float]] = []
         for i, v in enumerate(self.views):
             frame = model.render(v.camera, ("final", "depth", "normal"), background=bg)
             final = frame.image("final")
@@ -135,19 +136,11 @@ class ProgressEvaluator:
             ps.append(psnr(final, target))
             ss.append(ssim_srgb(final, target))
             gt = self.gt[i]
-            depth, valid = frame.depth()
-            covered = valid & (frame.gbuffer.alpha > SURFACE_ALPHA)
             if gt is not None:
-                mask = gt.mask.to(depth.device) & covered
-                ang.append(
-                    normal_angle_error_deg(
-                        frame.world_normals(), gt.normal_world.to(depth.device), mask
-                    )
-                )
-                de = depth_error(depth, gt.depth.to(depth), mask)
-                dabs.append(de["abs"])
-                drel.append(de["rel"])
+                errors.append(frame_geometry_error(frame, gt))
             elif not self.has_gt_maps:
+                depth, valid = frame.depth()
+                covered = valid & (frame.gbuffer.alpha > SURFACE_ALPHA)
                 dn.append(depth_normal_consistency_deg(frame))
                 nb = self.train_views[self.neighbours[i]]
                 f_nb = model.render(nb.camera, ("depth",), background=bg)
@@ -156,18 +149,15 @@ class ProgressEvaluator:
                 rc = reprojection_consistency(depth, covered, v.camera, d_nb, v_nb, nb.camera)
                 mv_med.append(rc["median_px"])
                 mv_in.append(rc["within_1px"])
-        out = {"psnr": _mean(ps), "ssim": _mean(ss)}
+        out = {"psnr": nanmean(ps), "ssim": nanmean(ss)}
         if self.has_gt_maps:
-            out.update(
-                normal_error_deg=_mean(ang),
-                depth_abs_error=_mean(dabs),
-                depth_rel_error=_mean(drel),
-            )
+            for key in ("normal_error_deg", "depth_abs_error", "depth_rel_error"):
+                out[key] = nanmean([e[key] for e in errors])
         else:
             out.update(
-                depth_normal_consistency_deg=_mean(dn),
-                multiview_consistency_px=_mean(mv_med),
-                multiview_consistent_fraction=_mean(mv_in),
+                depth_normal_consistency_deg=nanmean(dn),
+                multiview_consistency_px=nanmean(mv_med),
+                multiview_consistent_fraction=nanmean(mv_in),
             )
         return out
 

@@ -49,14 +49,20 @@ class MetricsLog:
 
 
 def read_metrics(path: str | Path) -> list[dict[str, Any]]:
+    """The rows of a metrics log; a last line still being written is left out."""
     rows = []
     p = Path(path)
     if not p.exists():
         return rows
-    for line in p.read_text().splitlines():
-        line = line.strip()
-        if line:
+    lines = [x.strip() for x in p.read_text().splitlines()]
+    lines = [x for x in lines if x]
+    for k, line in enumerate(lines):
+        try:
             rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            if k == len(lines) - 1:  # a reader caught the run mid-append
+                break
+            raise
     return rows
 
 

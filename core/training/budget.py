@@ -60,12 +60,6 @@ def _growth(cfg: TrainConfig, n: int, iteration: int, at: float) -> float:
     return 1.0 + DENSIFY_GROWTH * ahead
 
 
-def phase_of(marks: list[int], iteration: int) -> str:
-    if iteration >= marks[1]:
-        return "multiview"
-    return "geometry" if iteration >= marks[0] else "rgb"
-
-
 @dataclass
 class TimeBudget:
     """The planned iteration count of a time-budgeted run, re-planned as it goes."""
