@@ -610,6 +610,8 @@ class Trainer:
             if self.iteration >= self.sched.iterations:
                 self._replan(force=True)  # time left over: the estimate was cautious
                 if self.iteration >= self.sched.iterations:
+                    if self.budget is not None and self.iteration < self.cfg.iterations:
+                        stopped_by = "time"  # the plan for the time left ended it, not the cap
                     break
             if self.should_stop():
                 status = "cancelled"
