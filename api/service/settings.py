@@ -47,6 +47,63 @@ class Settings(BaseSettings):
         description="artifact store root (scene files, run folders); a volume shared by "
         "API and workers; default {data_dir}/store",
     )
+    store_url: str | None = Field(
+        None,
+        description="s3://BUCKET[/PREFIX]: keep artifacts in an S3-compatible bucket (API and "
+        "workers on different hosts share nothing else but the database and Redis); unset: "
+        "the directory store_dir",
+    )
+    s3_endpoint_url: str | None = Field(
+        None,
+        description="S3 endpoint, e.g. http://minio:9000 (MinIO, Ceph RGW, R2); unset: "
+        "AWS_ENDPOINT_URL_S3 / AWS_ENDPOINT_URL, else AWS S3 itself",
+    )
+    s3_region: str | None = Field(
+        None, description="bucket region; unset: AWS_REGION / AWS_DEFAULT_REGION / AWS config"
+    )
+    s3_access_key_id: str | None = Field(
+        None,
+        description="access key; unset: the standard AWS chain (AWS_ACCESS_KEY_ID and "
+        "AWS_SECRET_ACCESS_KEY, AWS_PROFILE, an instance or task role)",
+    )
+    s3_secret_access_key: str | None = Field(
+        None, description="secret key going with s3_access_key_id"
+    )
+    s3_addressing_style: Literal["auto", "path", "virtual"] = Field(
+        "auto",
+        description="bucket in the path (http://host/bucket/key) or the host name; 'auto': "
+        "path with a custom endpoint (MinIO), virtual hosts on AWS",
+    )
+    store_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        description="connect and read timeout of one store request (the health check and "
+        "job submission wait at most min(3, this) on an unreachable store)",
+    )
+    store_part_bytes: int = Field(
+        8 * MiB,
+        ge=5 * MiB,
+        le=512 * MiB,
+        description="multipart upload part size: the memory one upload holds in the API; "
+        "objects up to 10,000 parts",
+    )
+    store_retry_s: float = Field(
+        600.0,
+        ge=0,
+        description="a runner that loses the store keeps retrying (exponential backoff) this "
+        "long, then fails the job (resume it later); 0: no retry",
+    )
+    store_sweep_s: float = Field(
+        3600.0,
+        ge=0,
+        description="period of the API's sweep for orphans: objects of deleted scenes and "
+        "jobs, multipart uploads abandoned for a day; 0: off",
+    )
+    cache_dir: Path | None = Field(
+        None,
+        description="local copies of bucket objects (scenes and run folders a worker trains "
+        "on, checkpoints the viewer shows); default {data_dir}/cache",
+    )
     redis_url: str | None = Field(None, description="broker URL for the Celery queue")
     queue_backend: Literal["auto", "local", "celery"] = Field(
         "auto",
@@ -186,6 +243,19 @@ class Settings(BaseSettings):
             )
         return self
 
+    @model_validator(mode="after")
+    def _store_url(self) -> Settings:
+        if self.store_url is not None:
+            from urllib.parse import urlsplit
+
+            parts = urlsplit(self.store_url)
+            if parts.scheme != "s3" or not parts.netloc or parts.query or parts.fragment:
+                raise ValueError(
+                    f"store_url {self.store_url!r} is not s3://BUCKET[/PREFIX]; "
+                    "leave it unset for the directory store"
+                )
+        return self
+
     @property
     def db_url(self) -> str:
         if self.database_url:
@@ -195,6 +265,10 @@ class Settings(BaseSettings):
     @property
     def store_root(self) -> Path:
         return self.store_dir if self.store_dir is not None else self.data_dir / "store"
+
+    @property
+    def cache_root(self) -> Path:
+        return self.cache_dir if self.cache_dir is not None else self.data_dir / "cache"
 
 
 @lru_cache
