@@ -21,7 +21,7 @@ from api.problems import ApiError, FieldError
 from api.service.db import Database
 from api.service.queue import JobQueue
 from api.service.settings import Settings
-from api.service.store import ArtifactStore
+from api.service.store import ArtifactStore, LocalStore, StoreProbe
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `glint keys create`")
 SCOPE_EXTRA = "x-glint-scope"  # openapi_extra key: the scope a route needs (see required_scope)
@@ -42,8 +42,20 @@ def get_store(request: Request) -> ArtifactStore:
     return request.app.state.store
 
 
+def get_scratch(request: Request) -> LocalStore:
+    """Where archives are spooled before unpacking (the store itself when it is a folder)."""
+    return request.app.state.scratch
+
+
 def get_queue(request: Request) -> JobQueue:
     return request.app.state.queue
+
+
+def require_store(request: Request) -> None:
+    """503 ``store-unavailable`` (within the probe's timeout) unless the store answers:
+    nothing is created for work that could not read or write its files."""
+    probe: StoreProbe = request.app.state.store_probe
+    probe.require()
 
 
 async def get_db(request: Request) -> AsyncIterator[Session]:
@@ -159,5 +171,7 @@ SettingsDep = Annotated[Settings, Depends(get_settings)]
 DatabaseDep = Annotated[Database, Depends(get_database)]
 SessionDep = Annotated[Session, Depends(get_db)]
 StoreDep = Annotated[ArtifactStore, Depends(get_store)]
+ScratchDep = Annotated[LocalStore, Depends(get_scratch)]
+StoreUp = Depends(require_store)
 QueueDep = Annotated[JobQueue, Depends(get_queue)]
 PrincipalDep = Annotated[auth.Principal, Depends(get_principal)]

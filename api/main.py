@@ -25,7 +25,8 @@ from api.service.queue import CeleryQueue, JobQueue, LocalQueue, make_queue
 from api.service.recovery import Reaper, requeue_orphans
 from api.service.scene_records import relativise_scene_records
 from api.service.settings import Settings, apply_to_core, get_settings
-from api.service.store import ArtifactStore, LocalStore
+from api.service.store import ArtifactStore, LocalStore, StoreProbe, make_store
+from api.service.sweeper import Sweeper
 from api.timing import ServerTimingMiddleware
 
 log = logging.getLogger("glint.api")
@@ -105,10 +106,18 @@ def create_app(
         if settings.auto_migrate:
             upgrade(database.engine)
         app.state.database = database
-        app.state.store = store or LocalStore(settings.store_root)
+        app.state.store = store or make_store(settings, "api")
+        app.state.store_probe = StoreProbe(app.state.store)
         if isinstance(app.state.store, LocalStore):
+            app.state.scratch = app.state.store  # archives are spooled beside the files
             app.state.store.sweep_tmp()
             relativise_scene_records(database, app.state.store.root)
+        else:  # a bucket: nothing touches it here (it may be down; health says so)
+            app.state.scratch = LocalStore(settings.cache_root / "api" / "scratch")
+            app.state.scratch.sweep_tmp()
+        sweeper = None
+        if settings.store_sweep_s > 0:
+            sweeper = Sweeper(database, app.state.store, settings.store_sweep_s).start()
         app.state.queue = queue or make_queue(settings)
         _recover(database, app.state.queue, settings)
         reaper = None
@@ -118,6 +127,8 @@ def create_app(
         try:
             yield
         finally:
+            if sweeper is not None:
+                sweeper.close()
             if reaper is not None:
                 reaper.close()
             close = getattr(app.state.queue, "close", None)

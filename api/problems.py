@@ -20,6 +20,8 @@ from pydantic import BaseModel, Field
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match, Mount
 
+from api.service.store import StoreUnavailableError
+
 PROBLEM_JSON = "application/problem+json"
 log = logging.getLogger("glint.api")
 
@@ -234,6 +236,15 @@ async def _http(request: Request, exc: Exception) -> JSONResponse:
     return problem_response(request, exc.status_code, slug, detail, headers=headers or None)
 
 
+async def _store_unavailable(request: Request, exc: Exception) -> JSONResponse:
+    """The artifact store is down (unreachable, credentials refused, no bucket): 503 at
+    once, whichever route found out; the request changed nothing it could not undo."""
+    log.warning("store unavailable on %s %s: %s", request.method, request.url.path, exc)
+    return problem_response(
+        request, 503, "store-unavailable", f"artifact store unavailable: {exc}; try again later"
+    )
+
+
 async def _unexpected(request: Request, exc: Exception) -> JSONResponse:
     log.exception("unhandled error on %s %s", request.method, request.url.path, exc_info=exc)
     return problem_response(request, 500, "internal-error", "an unexpected error occurred")
@@ -243,6 +254,7 @@ def install_handlers(app: FastAPI) -> None:
     app.add_exception_handler(ApiError, _api_problem)
     app.add_exception_handler(RequestValidationError, _validation)
     app.add_exception_handler(StarletteHTTPException, _http)
+    app.add_exception_handler(StoreUnavailableError, _store_unavailable)
     app.add_exception_handler(Exception, _unexpected)
 
 
@@ -258,7 +270,7 @@ def responses(*codes: int) -> dict[int | str, dict[str, Any]]:
         415: "Unsupported content type",
         416: "Range not satisfiable",
         422: "Invalid content (fields named in `errors`)",
-        503: "A dependency (database, queue) is unavailable",
+        503: "A dependency (database, queue, artifact store) is unavailable",
     }
     return {
         code: {

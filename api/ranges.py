@@ -1,4 +1,8 @@
-"""Serving a stored file over HTTP: ETag revalidation and single byte ranges.
+"""Serving a stored object over HTTP: ETag revalidation and single byte ranges.
+
+The bytes come from the artifact store (``read_range``: a file read, or one ranged GET
+from the bucket streamed through), so the owner check of the route guards every byte
+and clients need no access to the store.
 
 ``If-None-Match`` answers 304; ``Range: bytes=a-b`` (also ``a-`` and ``-n``) answers
 206 with ``Content-Range``; a range outside the file (or a malformed one) answers 416
@@ -9,16 +13,13 @@ which RFC 9110 allows; ``If-Range`` with a different ETag does the same.
 from __future__ import annotations
 
 import re
-from collections.abc import AsyncIterator
-from pathlib import Path
 
-import anyio
 from starlette.requests import Request
 from starlette.responses import Response, StreamingResponse
 
 from api.problems import ApiError
+from api.service.store import ArtifactStore
 
-CHUNK = 256 * 1024
 _RANGE = re.compile(r"^\s*(\d*)\s*-\s*(\d*)\s*$")
 
 
@@ -64,26 +65,18 @@ def parse_range(header: str, size: int) -> tuple[int, int] | None:
     return start, min(end, size - 1)
 
 
-async def _read(path: Path, start: int, length: int) -> AsyncIterator[bytes]:
-    fh = await anyio.open_file(path, "rb")
-    try:
-        await fh.seek(start)
-        left = length
-        while left > 0:
-            data = await fh.read(min(CHUNK, left))
-            if not data:
-                break
-            left -= len(data)
-            yield data
-    finally:
-        await fh.aclose()
-
-
-def file_response(
-    request: Request, path: Path, *, etag: str, content_type: str, filename: str
+def stored_response(
+    request: Request,
+    store: ArtifactStore,
+    key: str,
+    *,
+    size: int,
+    etag: str,
+    content_type: str,
+    filename: str,
 ) -> Response:
-    """200, 206, 304 or 416 for ``path`` according to the request's conditional headers."""
-    size = path.stat().st_size
+    """200, 206, 304 or 416 for the object ``key`` (``size`` bytes) according to the
+    request's conditional headers."""
     headers = {
         "ETag": etag,
         "Accept-Ranges": "bytes",
@@ -103,6 +96,10 @@ def file_response(
             headers["Content-Range"] = f"bytes {start}-{end}/{size}"
     length = max(end - start + 1, 0)
     headers["Content-Length"] = str(length)
+    # a blocking iterator: Starlette pulls it on worker threads
     return StreamingResponse(
-        _read(path, start, length), status_code=status, media_type=content_type, headers=headers
+        store.read_range(key, start, length),
+        status_code=status,
+        media_type=content_type,
+        headers=headers,
     )

@@ -30,6 +30,7 @@ class Page(BaseModel, Generic[T]):
 class Health(BaseModel):
     status: Literal["ok"]
     database: Literal["ok"]
+    store: Literal["ok"]
     version: str
 
 

@@ -35,6 +35,7 @@ from api.deps import (
     SessionDep,
     SettingsDep,
     StoreDep,
+    StoreUp,
 )
 from api.problems import ApiError, not_found, responses
 from api.routers.scenes import owned_scene
@@ -43,6 +44,7 @@ from api.service.db import Database
 from api.service.models import Job, JobState, SceneState, new_id
 from api.service.queue import JobQueue
 from api.service.store import job_key
+from api.service.sweeper import discard
 from api.strict_json import StrictJsonRoute
 from api.views import job_out
 
@@ -89,7 +91,7 @@ def enqueue(queue: JobQueue, job_id: str) -> None:
     status_code=201,
     response_model=JobOut,
     responses=responses(400, *AUTH, 409, 415, 422, 503),
-    dependencies=[JsonBody],
+    dependencies=[JsonBody, StoreUp],
     summary="Create a training job on a ready scene",
 )
 def create_job(
@@ -200,6 +202,7 @@ def cancel_job(job_id: JobId, principal: PrincipalDep, session: SessionDep) -> J
     "/{job_id}/resume",
     response_model=JobOut,
     responses=responses(*AUTH, 409, 422, 503),
+    dependencies=[StoreUp],
     summary="Re-queue a cancelled or failed job; it continues from its last checkpoint",
 )
 def resume_job(
@@ -244,9 +247,7 @@ def delete_job(
         )
     session.delete(job)  # its mesh jobs go with it (foreign key cascade)
     session.commit()
-    for c in children:
-        store.delete(job_key(c.id))
-    store.delete(job_key(job_id))
+    discard(store, [job_key(c.id) for c in children] + [job_key(job_id)])
     return Response(status_code=204)
 
 

@@ -37,9 +37,11 @@ router = APIRouter(tags=["keys"], route_class=StrictJsonRoute)
     "/health",
     response_model=Health,
     responses=responses(503),
-    summary="Liveness and database reachability (no key needed)",
+    summary="Liveness; database and artifact store reachability (no key needed)",
 )
-def health(database: DatabaseDep) -> Health:
+def health(database: DatabaseDep, request: Request) -> Health:
+    """200 when the database and the store both answer; 503 ``database-unavailable`` or
+    ``store-unavailable`` (unreachable, credentials refused, no bucket) within seconds."""
     from core import __version__
 
     try:
@@ -49,7 +51,8 @@ def health(database: DatabaseDep) -> Health:
         raise ApiError(
             503, "database-unavailable", f"database unreachable: {type(exc).__name__}"
         ) from None
-    return Health(status="ok", database="ok", version=__version__)
+    request.app.state.store_probe.require(fresh=True)  # StoreUnavailableError: 503
+    return Health(status="ok", database="ok", store="ok", version=__version__)
 
 
 @router.get(

@@ -16,7 +16,7 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from api.deps import JsonBody, PrincipalDep, QueueDep, SessionDep, SettingsDep, StoreDep
+from api.deps import JsonBody, PrincipalDep, QueueDep, SessionDep, SettingsDep, StoreDep, StoreUp
 from api.problems import ApiError, FieldError, responses
 from api.routers.jobs import AUTH, JobId, enqueue, job_page, owned_job
 from api.schemas import JobOut, MeshCreate, Page
@@ -45,7 +45,7 @@ def _too_fine(field: str, detail: str) -> ApiError:
     status_code=201,
     response_model=JobOut,
     responses=responses(400, *AUTH, 409, 415, 422, 503),
-    dependencies=[JsonBody],
+    dependencies=[JsonBody, StoreUp],
     summary="Extract a mesh from a finished training job (queued as a job of its own)",
 )
 def create_mesh(
@@ -68,8 +68,8 @@ def create_mesh(
             "job-not-finished",
             f"job '{job_id}' is {parent.state}; meshes are extracted from succeeded jobs",
         )
-    run = store.path(job_run_key(parent.id))
-    if run is None or not (run / CHECKPOINT).is_file():
+    run = job_run_key(parent.id)
+    if store.stat(f"{run}/{CHECKPOINT}") is None:
         raise ApiError(409, "no-checkpoint", f"job '{job_id}' has no checkpoint to mesh from")
     limit = settings.mesh_max_resolution
     if body.voxel is None and body.resolution > limit:
@@ -77,7 +77,7 @@ def create_mesh(
             "resolution", f"resolution {body.resolution} is beyond this server's limit of {limit}"
         )
     if body.voxel is not None:
-        side = _box_side(run / OUTPUTS)
+        side = _box_side(store.local_file(f"{run}/{OUTPUTS}"))
         if side is not None and side / body.voxel > limit:
             raise _too_fine(
                 "voxel",
@@ -99,8 +99,10 @@ def create_mesh(
     return job_out(mesh)
 
 
-def _box_side(outputs: Path) -> float | None:
+def _box_side(outputs: Path | None) -> float | None:
     """The scene box's side (2 × radius) recorded by the training job's export."""
+    if outputs is None:
+        return None
     try:
         data = json.loads(outputs.read_text())
         return 2.0 * float(data["scene_box"]["radius"])

@@ -71,8 +71,9 @@ def job_metrics(
     job = owned_job(session, principal, job_id)
     budget = (job.config or {}).get("time_budget")
     session.rollback()  # done with the database; the file read may take a moment
-    path = store.path(f"{job_run_key(job_id)}/{METRICS_FILE}")
-    rows = read_metrics(path)
+    # a bucket's copy is fetched again when it changed (runners send it at every row)
+    path = store.local_file(f"{job_run_key(job_id)}/{METRICS_FILE}")
+    rows = read_metrics(path) if path is not None else []
     geometry = next((r["geometry"] for r in reversed(rows) if r.get("geometry")), None)
     limit = min(limit, settings.page_size_max)
     total = len(rows)

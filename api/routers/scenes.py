@@ -20,14 +20,29 @@ from sqlalchemy.orm import Session
 
 from api.archives import ARCHIVE_TYPES, ArchiveLimits, extract_archive
 from api.auth import Principal
-from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep, StoreDep
+from api.deps import (
+    DatabaseDep,
+    JsonBody,
+    PrincipalDep,
+    ScratchDep,
+    SessionDep,
+    SettingsDep,
+    StoreDep,
+)
 from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
 from api.schemas import Page, SceneCreate, SceneFileOut, SceneOut, UploadResult
 from api.service.db import Database
 from api.service.models import Job, Scene, SceneFile, SceneState, new_id
 from api.service.settings import Settings
-from api.service.store import ArtifactStore, StoreError, scene_files_key, scene_key
+from api.service.store import (
+    ArtifactStore,
+    StoreError,
+    StoreUnavailableError,
+    scene_files_key,
+    scene_key,
+)
+from api.service.sweeper import discard
 from api.strict_json import StrictJsonRoute
 from api.uploads import Limits, StagedSet, receive_body, receive_multipart, too_large
 from api.validation import validate_scene
@@ -160,7 +175,7 @@ def delete_scene(
         )
     session.delete(scene)
     session.commit()
-    store.delete(scene_key(scene_id))
+    discard(store, [scene_key(scene_id)])
     return Response(status_code=204)
 
 
@@ -207,10 +222,10 @@ def delete_file(
     )
     if row is None:
         raise not_found("file", path)
+    store.delete(f"{scene_files_key(scene_id)}/{path}")  # a store that is down: 503, kept
     session.delete(row)
     scene.updated_at = _now()
     session.commit()
-    store.delete(f"{scene_files_key(scene_id)}/{path}")
     return Response(status_code=204)
 
 
@@ -353,6 +368,7 @@ async def upload_archive(
     settings: SettingsDep,
     database: DatabaseDep,
     store: StoreDep,
+    scratch: ScratchDep,
 ) -> UploadResult:
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype not in ARCHIVE_TYPES:
@@ -364,8 +380,8 @@ async def upload_archive(
         )
     limits = await run_in_threadpool(_upload_budget, database, principal, scene_id, settings)
     incoming = f"tmp/incoming/{uuid.uuid4().hex}"
-    pending = await receive_body(
-        request, store, incoming, settings.max_archive_bytes, settings.upload_chunk_bytes
+    pending = await receive_body(  # spooled on local disk: archives are read out of order
+        request, scratch, incoming, settings.max_archive_bytes, settings.upload_chunk_bytes
     )
     try:
         await run_in_threadpool(pending.commit)
@@ -377,10 +393,10 @@ async def upload_archive(
             max_path_length=limits.max_path_length,
         )
         staged = await run_in_threadpool(
-            extract_archive, store.path(incoming), store, _key_for(scene_id), archive_limits
+            extract_archive, scratch.path(incoming), store, _key_for(scene_id), archive_limits
         )
     finally:
-        await run_in_threadpool(store.delete, incoming)
+        await run_in_threadpool(scratch.delete, incoming)
     return await run_in_threadpool(
         _commit_upload, database, store, principal, scene_id, staged, settings
     )
@@ -414,11 +430,16 @@ def commit_scene(
         scene.state = SceneState.VALIDATING
     problem: ApiError | None = None
     report = None
+    store_down = False
     try:
         with request.app.state.validation_slots:  # loading scenes is memory-hungry
-            report = validate_scene(store.path(scene_files_key(scene_id)))
+            # the scene's files on this host (with a bucket: a local copy, fetched now)
+            report = validate_scene(store.local(scene_files_key(scene_id)))
     except ApiError as exc:
         problem = exc
+    except StoreUnavailableError:
+        store_down = True  # not the scene's fault: it stays open as it was, 503
+        raise
     finally:
         with database.write() as s:
             scene = s.get(Scene, scene_id)
@@ -429,7 +450,8 @@ def commit_scene(
                 scene.last_error, scene.committed_at = None, now
             else:
                 scene.state = SceneState.OPEN
-                scene.last_error = _problem_dict(problem, scene_id)
+                if not store_down:
+                    scene.last_error = _problem_dict(problem, scene_id)
             scene.updated_at = now
             s.flush()
             out = scene_out_one(s, scene)

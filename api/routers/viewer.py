@@ -8,6 +8,7 @@ requests, so the API key never travels in a URL. The rest of the viewer lives in
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
@@ -21,12 +22,19 @@ from api.deps import SCOPE_EXTRA, PrincipalDep, SessionDep
 from api.problems import responses
 from api.routers.jobs import AUTH, JobId, owned_job
 from api.service.models import Job
-from api.service.store import job_run_key, scene_files_key
+from api.service.store import (
+    ArtifactStore,
+    StoreUnavailableError,
+    job_run_key,
+    scene_files_key,
+)
 from api.strict_json import StrictJsonRoute
 from api.views import job_out
 from viewer_web import JobView, ViewerService
 
 router = APIRouter(prefix="/jobs", tags=["viewer"], route_class=StrictJsonRoute)
+log = logging.getLogger("glint.viewer")
+CHECKPOINT_NAME = "checkpoint.pt"  # core.model.trained's; the API process does not import torch
 
 # The job fields the viewer shows (config and plan stay out: they are large).
 STATUS_FIELDS = (
@@ -63,7 +71,20 @@ def viewer_status(job: Job) -> dict[str, Any]:
 
 
 def make_lookup(app: FastAPI) -> Callable[[str, str], JobView | None]:
-    """(job id, owner) -> JobView | None, reading the app's database and store."""
+    """(job id, owner) -> JobView | None, reading the app's database and store.
+
+    The viewer reads files: with a bucket, the job's checkpoint is fetched into this
+    host's cache whenever it changed (one HEAD per look while unchanged; the viewer looks
+    about once a second and reloads the model when the copy is newer), and the scene
+    (frozen once its jobs exist) once per process. A store that is down keeps the last
+    copies."""
+    scenes: dict[str, Path | None] = {}
+
+    def scene_folder(store: ArtifactStore, scene_id: str) -> Path | None:
+        if scene_id not in scenes:
+            folder = store.local(scene_files_key(scene_id))
+            scenes[scene_id] = folder if folder.is_dir() and any(folder.iterdir()) else None
+        return scenes[scene_id]
 
     def lookup(job_id: str, owner: str) -> JobView | None:
         with app.state.database.read() as s:
@@ -71,11 +92,15 @@ def make_lookup(app: FastAPI) -> Callable[[str, str], JobView | None]:
             if job is None:
                 return None
             status, scene_id = viewer_status(job), job.scene_id
-        store = app.state.store
-        scene_dir: Path | None = store.path(scene_files_key(scene_id))
-        if scene_dir is not None and not scene_dir.is_dir():
-            scene_dir = None
-        return JobView(store.path(job_run_key(job_id)), scene_dir, status)
+        store: ArtifactStore = app.state.store
+        run_key = job_run_key(job_id)
+        scene_dir: Path | None = None
+        try:
+            store.local_file(f"{run_key}/{CHECKPOINT_NAME}")
+            scene_dir = scene_folder(store, scene_id)
+        except StoreUnavailableError as exc:
+            log.warning("viewer: job %s: %s; showing what this host has", job_id, exc)
+        return JobView(store.local_path(run_key), scene_dir, status)
 
     return lookup
 

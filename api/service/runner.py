@@ -19,8 +19,13 @@
   checkpoint-and-return, but the job goes back to ``queued`` for the next runner.
 * **Resume**: the run folder lives in the store (``jobs/{id}/run``); ``train_scene``
   always resumes from its checkpoint, so a re-queued job continues where it stopped.
-* **End**: artifacts in the run folder are registered and the state set to
-  ``succeeded``, ``cancelled`` or ``failed`` (with the error) in one transaction.
+* **Store**: the runner trains in a local copy of the run folder (the folder itself with
+  a directory store; a copy in the cache with a bucket, fetched from it first, so a job
+  resumed on another host finds its checkpoint) and sends it back at every checkpoint and
+  evaluation and at the end. A store outage is ridden out with backoff (``store_retry_s``).
+* **End**: the run folder is sent to the store, *then* its artifacts are registered and
+  the state set to ``succeeded``, ``cancelled`` or ``failed`` (with the error) in one
+  transaction: no artifact row names an object that is not whole in the store.
 """
 
 from __future__ import annotations
@@ -34,6 +39,7 @@ import socket
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
@@ -43,7 +49,15 @@ from sqlalchemy import Update, delete, func, select, update
 from api.service.db import Database, database_for
 from api.service.models import Artifact, Job, JobKind, JobState
 from api.service.settings import Settings
-from api.service.store import LocalStore, job_run_key, scene_files_key
+from api.service.store import (
+    ArtifactStore,
+    StoreUnavailableError,
+    is_staging,
+    job_run_key,
+    make_store,
+    retrying,
+    scene_files_key,
+)
 
 log = logging.getLogger("glint.runner")
 
@@ -144,6 +158,7 @@ class _JobReporter:
         self.lost = False
         self.own_progress = False  # stage events drive iteration/total (mesh jobs)
         self.last_metrics: dict[str, Any] = {}  # the latest evaluation row
+        self.sync: Callable[[], object] | None = None  # sends the run folder to the store
         self.lock = threading.Lock()
 
     def _fenced(self) -> Update:
@@ -190,6 +205,8 @@ class _JobReporter:
             self.pending["iteration"] = int(event["iteration"])
             log.info("job %s: resumed from iteration %d", self.job_id, event["iteration"])
             self.flush()
+        if kind in ("checkpoint", "eval") and self.sync is not None:
+            self.sync()  # a new checkpoint or metrics row: into the store, for resumes/readers
 
     def flush(self) -> None:
         """Write pending progress now (a failed write is logged and retried next time)."""
@@ -276,8 +293,7 @@ def collect_artifacts(run_dir: Path) -> list[dict[str, Any]]:
         return out
     for p in sorted(run_dir.rglob("*")):
         rel = p.relative_to(run_dir)
-        staging = any(part.endswith(".tmp") for part in rel.parts)  # unfinished writes
-        if p.is_file() and not p.is_symlink() and not staging:
+        if p.is_file() and not p.is_symlink() and not is_staging(rel.as_posix()):
             name = rel.as_posix()
             out.append(
                 {
@@ -328,13 +344,18 @@ def _release(reporter: _JobReporter) -> bool:
         return s.execute(reporter._fenced().values(**values)).rowcount == 1
 
 
-def _public_error(exc: BaseException, store_root: Path) -> str:
-    """The error for users: GlintErrors as they are, others with their type; no store paths."""
+def _public_error(exc: BaseException, *roots: Path) -> str:
+    """The error for users: GlintErrors as they are, others with their type; no paths of
+    the store or its local copies."""
     from core.errors import GlintError
 
-    msg = str(exc) if isinstance(exc, GlintError) else f"{type(exc).__name__}: {exc}"
-    for prefix in (str(store_root) + os.sep, str(store_root)):
-        msg = msg.replace(prefix, "")
+    if isinstance(exc, StoreUnavailableError):
+        msg = f"artifact store unavailable: {exc}"
+    else:
+        msg = str(exc) if isinstance(exc, GlintError) else f"{type(exc).__name__}: {exc}"
+    for root in roots:
+        for prefix in (str(root) + os.sep, str(root)):
+            msg = msg.replace(prefix, "")
     return msg[:4000]
 
 
@@ -439,6 +460,10 @@ def _run_mesh(
     return "succeeded"
 
 
+# what a mesh job needs of its parent's run folder (not its renders, meshes, reports)
+PARENT_FILES = ("checkpoint.pt", "config.json", "plan.json", "outputs.json", "scene.json")
+
+
 def run_job(
     job_id: str,
     settings: Settings,
@@ -447,6 +472,7 @@ def run_job(
     worker: str | None = None,
     stop: threading.Event | None = None,
     device: str | None = None,
+    store: ArtifactStore | None = None,
 ) -> str | None:
     """Claim and run one job; returns its final state, or None if it was not ours to run.
 
@@ -458,7 +484,7 @@ def run_job(
     for the next runner to resume; the return value is then ``"queued"``.
     """
     database = database or database_for(settings.db_url)
-    store = LocalStore(settings.store_root)
+    store = store or make_store(settings, "runner")
     worker = worker or f"{socket.gethostname()}:{os.getpid()}:{threading.get_ident()}"
     lease = claim(database, job_id, worker)
     if lease is None:
@@ -477,29 +503,68 @@ def run_job(
     reporter.own_progress = kind == JobKind.MESH
     heartbeat = _Heartbeat(reporter, settings.heartbeat_s)
     heartbeat.start()
-    run_dir = store.path(job_run_key(job_id))
-    state, error = JobState.FAILED, None
+    run_key = job_run_key(job_id)
+
+    def patiently(what: str, op: Callable[[], Any]) -> Any:
+        return retrying(
+            op,
+            what=f"job {job_id}: {what}",
+            patience_s=settings.store_retry_s,
+            give_up=lambda: reporter.lost,
+        )
+
+    state, error, store_down = JobState.FAILED, None, False
+    run_dir: Path | None = None
     try:
-        if kind == JobKind.MESH:
-            assert parent_id is not None
-            status = _run_mesh(
-                config,
-                store.path(job_run_key(parent_id)),
-                store.path(scene_files_key(scene_id)),
-                run_dir,
-                reporter,
-                device,
-                settings.mesh_max_resolution,
-            )
-        else:
-            status = _run_training(config, store.path(scene_files_key(scene_id)), run_dir, reporter)
-        state = JobState.SUCCEEDED if status == "succeeded" else JobState.CANCELLED
-    except Exception as exc:
-        log.exception("job %s failed", job_id)
-        error = _public_error(exc, store.root)
+        try:
+            run_dir = patiently("fetch the run folder", lambda: store.local(run_key))
+            scene_dir = patiently("fetch the scene", lambda: store.local(scene_files_key(scene_id)))
+            reporter.sync = lambda: patiently("send the run folder", lambda: store.push(run_key))
+            if kind == JobKind.MESH:
+                assert parent_id is not None
+                parent_key = job_run_key(parent_id)
+                parent = patiently(
+                    "fetch the parent's checkpoint", lambda: store.local(parent_key, PARENT_FILES)
+                )
+                status = _run_mesh(
+                    config,
+                    parent,
+                    scene_dir,
+                    run_dir,
+                    reporter,
+                    device,
+                    settings.mesh_max_resolution,
+                )
+            else:
+                status = _run_training(config, scene_dir, run_dir, reporter)
+            state = JobState.SUCCEEDED if status == "succeeded" else JobState.CANCELLED
+        except Exception as exc:
+            log.exception("job %s failed", job_id)
+            store_down = isinstance(exc, StoreUnavailableError)
+            error = _public_error(exc, settings.store_root, settings.cache_root)
+        if run_dir is not None and not store_down and not reporter.lost:
+            try:  # whatever the outcome: the next runner resumes from what is sent here
+                patiently("send the run folder", lambda: store.push(run_key))
+            except StoreUnavailableError as exc:
+                store_down, state = True, JobState.FAILED
+                error = _public_error(exc, settings.store_root, settings.cache_root)
     finally:
         heartbeat.stopped.set()
         heartbeat.join()
+    try:
+        return _settle(reporter, job_id, state, error, run_dir if not store_down else None)
+    finally:
+        if kind == JobKind.MESH and parent_id is not None:
+            store.drop_local(job_run_key(parent_id))
+        if not reporter.lost:  # a runner that took over may be working in it
+            store.drop_local(run_key)  # the store has it; a bucket's local copy is spent
+
+
+def _settle(
+    reporter: _JobReporter, job_id: str, state: str, error: str | None, run_dir: Path | None
+) -> str | None:
+    """Record how the run ended: released to the queue, or finished with its artifacts
+    (``run_dir`` None: the run folder could not be stored, so none are listed)."""
     if reporter.lost:
         log.warning("job %s: lease lost; leaving the job to its new runner", job_id)
         return None
@@ -513,7 +578,7 @@ def run_job(
             return JobState.QUEUED
         return None
     try:
-        artifacts = collect_artifacts(run_dir)
+        artifacts = collect_artifacts(run_dir) if run_dir is not None else []
     except OSError as exc:
         artifacts, state = [], JobState.FAILED
         error = f"cannot read run folder: {exc}"
