@@ -29,8 +29,8 @@ from tests.deploy.support import (
     settings_fields,
 )
 
-CORE_SERVICES = ("api", "worker", "redis", "postgres")
-STORE = "glint-store"
+CORE_SERVICES = ("api", "worker", "redis", "postgres", "minio", "minio-init")
+ONE_SHOT = ("minio-init",)  # runs to completion before the api starts
 
 
 @pytest.fixture(scope="module")
@@ -86,6 +86,9 @@ def test_services_healthchecks_restart(base) -> None:
     for name in CORE_SERVICES:
         assert name in services, f"service {name} missing"
     for name, svc in services.items():
+        if name in ONE_SHOT:  # a job, not a server: retried until it succeeds, then done
+            assert svc.get("restart") == "on-failure", name
+            continue
         hc = svc.get("healthcheck")
         assert hc and hc.get("test") and not hc.get("disable"), f"{name}: no health check"
         assert svc.get("restart") in ("always", "unless-stopped", "on-failure"), name
@@ -97,15 +100,39 @@ def test_services_healthchecks_restart(base) -> None:
     ]
     assert "redis-cli" in services["redis"]["healthcheck"]["test"]
     assert "pg_isready" in " ".join(services["postgres"]["healthcheck"]["test"])
+    assert services["minio"]["healthcheck"]["test"] == ["CMD", "mc", "ready", "local"]
 
 
 def test_depends_on_healthy(base) -> None:
     s = base["services"]
-    for name, needs in {"api": {"postgres", "redis"}, "worker": {"redis", "postgres"}}.items():
+    needs = {
+        "api": {"postgres", "redis", "minio-init"},
+        "worker": {"redis", "postgres"},
+        "minio-init": {"minio"},
+    }
+    for name, wanted in needs.items():
         deps = s[name]["depends_on"]
-        assert needs <= set(deps), name
+        assert wanted <= set(deps), name
         for dep, cond in deps.items():
-            assert cond["condition"] == "service_healthy", f"{name} -> {dep}"
+            expected = "service_completed_successfully" if dep in ONE_SHOT else "service_healthy"
+            assert cond["condition"] == expected, f"{name} -> {dep}"
+
+
+def test_bucket_creation_step(base) -> None:
+    """minio-init makes the bucket the API and workers are pointed at, and their user."""
+    env = env_example()
+    init = base["services"]["minio-init"]
+    script = init["command"][0]
+    assert "mc mb --ignore-existing" in script and "mc admin user add" in script
+    init_env = service_env(init, env)
+    api = service_env(base["services"]["api"], env)
+    assert api["GLINT_STORE_URL"] == f"s3://{init_env['S3_BUCKET']}"
+    assert api["GLINT_S3_ENDPOINT_URL"] == "http://minio:9000"
+    assert api["GLINT_S3_ACCESS_KEY_ID"] == init_env["S3_ACCESS_KEY"]
+    assert api["GLINT_S3_SECRET_ACCESS_KEY"] == init_env["S3_SECRET_KEY"] != ""
+    from api.service.settings import Settings
+
+    assert Settings(store_url=api["GLINT_STORE_URL"]).store_url  # a URL the settings take
 
 
 def test_worker_reserves_one_gpu(base) -> None:
@@ -120,19 +147,26 @@ def test_worker_reserves_one_gpu(base) -> None:
     assert cmd[0] == "worker" and cmd[cmd.index("--device") + 1] == "cuda:0"
 
 
-def test_volumes_declared_and_store_shared(base) -> None:
+def test_volumes_declared_and_none_shared(base) -> None:
+    """API and workers share no volume: the bucket is the store (workers may run on other
+    hosts); each keeps its local copies in a volume of its own."""
     declared = set(base.get("volumes") or {})
     mounts = {name: _named_volumes(svc) for name, svc in base["services"].items()}
     for name, vols in mounts.items():
         assert set(vols) <= declared, f"{name} mounts undeclared volumes {set(vols) - declared}"
-    assert STORE in mounts["api"] and STORE in mounts["worker"]
-    target = mounts["api"][STORE]
-    assert mounts["worker"][STORE] == target, "api and worker must see the store at one path"
+    assert not set(mounts["api"]) & set(mounts["worker"]), "api and worker share a volume"
+    owners: dict[str, str] = {}
+    for name, vols in mounts.items():
+        for vol in vols:
+            assert vol not in owners, f"{vol} is mounted by {owners[vol]} and {name}"
+            owners[vol] = name
     env = env_example()
     for name in ("api", "worker"):
-        assert service_env(base["services"][name], env)["GLINT_STORE_DIR"] == target
+        svc_env = service_env(base["services"][name], env)
+        assert "GLINT_STORE_DIR" not in svc_env and svc_env["GLINT_STORE_URL"].startswith("s3://")
     assert mounts["redis"] == {"redis-data": "/data"}
     assert mounts["postgres"] == {"postgres-data": "/var/lib/postgresql/data"}
+    assert mounts["minio"] == {"minio-data": "/data"}
 
 
 def test_redis_is_persistent(base) -> None:
@@ -146,6 +180,9 @@ def test_images_pinned(base) -> None:
         image = base["services"][name]["image"]
         tag = image.rpartition(":")[2]
         assert ":" in image and tag != "latest" and re.search(r"\d+\.\d+", tag), image
+    for name in ("minio", "minio-init"):  # MinIO tags releases by date
+        tag = base["services"][name]["image"].rpartition(":")[2]
+        assert re.fullmatch(r"RELEASE\.\d{4}-\d\d-\d\dT\d\d-\d\d-\d\dZ", tag), tag
 
 
 def test_service_wiring(base) -> None:
@@ -159,7 +196,15 @@ def test_service_wiring(base) -> None:
             f"postgresql+psycopg://{env['POSTGRES_USER']}:{env['POSTGRES_PASSWORD']}"
             f"@postgres:5432/{env['POSTGRES_DB']}"
         )
-    shared = ("GLINT_DATABASE_URL", "GLINT_REDIS_URL", "GLINT_QUEUE_BACKEND", "GLINT_STORE_DIR")
+    shared = (
+        "GLINT_DATABASE_URL",
+        "GLINT_REDIS_URL",
+        "GLINT_QUEUE_BACKEND",
+        "GLINT_STORE_URL",
+        "GLINT_S3_ENDPOINT_URL",
+        "GLINT_S3_ACCESS_KEY_ID",
+        "GLINT_S3_SECRET_ACCESS_KEY",
+    )
     assert {k: api[k] for k in shared} == {k: worker[k] for k in shared}
     assert api["GLINT_HOST"] == "0.0.0.0"
     port = base["services"]["api"]["ports"][0]
@@ -194,6 +239,17 @@ def test_gpus_override_pins_one_gpu_each() -> None:
         if name != "worker":
             assert raw["services"][name]["extends"] == {"file": "compose.yaml", "service": "worker"}
     assert len(set(ids)) == len(ids), f"two workers share a GPU: {ids}"
+
+
+def test_aws_override_drops_minio() -> None:
+    """compose.aws.yaml: AWS S3's own endpoint, and nothing waits for (or starts) MinIO."""
+    merged = compose("compose.yaml", "compose.aws.yaml")
+    services = merged["services"]
+    for name in ("api", "worker"):
+        assert services[name]["environment"]["GLINT_S3_ENDPOINT_URL"] == "", name
+        assert not {"minio", "minio-init"} & set(services[name].get("depends_on", {})), name
+    for name in ("minio", "minio-init"):
+        assert services[name]["profiles"] == ["minio"], name
 
 
 def compose_path(name: str):

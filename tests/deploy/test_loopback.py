@@ -5,7 +5,9 @@ Runs what deploy/compose.yaml + compose.cpu.yaml declare (this machine has no GP
 ``environment`` compose gives them, hosts and paths mapped to loopback:
 ``postgres:5432`` -> a throwaway database on 127.0.0.1:5432 (SQLite when no PostgreSQL
 is reachable, said in the test's output), ``redis:6379`` -> a private ``redis-server``
-on a free port, ``/var/lib/glint`` -> a tmp folder, the API port -> a free port.
+on a free port, ``minio:9000`` -> moto's S3 server on a free port (its bucket made as
+``minio-init`` makes it; its credentials for MinIO's), ``/var/lib/glint`` -> a tmp
+folder of each service's own (they share no volume), the API port -> a free port.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ import httpx
 import pytest
 
 from tests.deploy.support import compose, env_example, service_env
+from tests.s3_server import S3Server
 
 pytestmark = pytest.mark.timeout(240)
 
@@ -141,14 +144,29 @@ def database(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, st
         admin.close()
 
 
+@pytest.fixture(scope="module")
+def s3(tmp_path_factory: pytest.TempPathFactory) -> Iterator[S3Server]:
+    srv = S3Server(tmp_path_factory.mktemp("moto")).start()
+    yield srv
+    srv.stop()
+
+
 def _loopback_env(
-    service: dict, *, database_url: str, redis_url: str, data_dir: Path, port: int
+    service: dict, *, database_url: str, redis_url: str, s3: S3Server, data_dir: Path, port: int
 ) -> dict[str, str]:
     """The service's compose environment with every container address mapped to loopback."""
     declared = service_env(service, env_example())
     mapped = {}
     for key, value in declared.items():
-        if key == "GLINT_DATABASE_URL":
+        if key == "GLINT_S3_ENDPOINT_URL":
+            assert value == "http://minio:9000"
+            value = s3.url
+        elif key == "GLINT_S3_ACCESS_KEY_ID":
+            value = s3.access_key
+        elif key == "GLINT_S3_SECRET_ACCESS_KEY":
+            assert value, "compose gives the services MinIO's key"
+            value = s3.secret_key
+        elif key == "GLINT_DATABASE_URL":
             assert value.startswith("postgresql+psycopg://") and "@postgres:5432/" in value
             value = database_url
         elif key == "GLINT_REDIS_URL":
@@ -187,27 +205,32 @@ def _scene_files(tmp: Path) -> list[tuple[str, tuple[str, io.BytesIO, str]]]:
 
 
 def test_compose_processes_run_a_job(
-    stack, worker_cli, redis_url, database, tmp_path: Path
+    stack, worker_cli, redis_url, database, s3, tmp_path: Path
 ) -> None:
     database_url, db_note = database
     if db_note != "PostgreSQL":  # compose runs PostgreSQL: say loudly that this did not
         warnings.warn(f"loopback stack ran on {db_note}", stacklevel=1)
-    data_dir = tmp_path / "glint"
     port = _free_port()
     envs = {
         name: _loopback_env(
             stack["services"][name],
             database_url=database_url,
             redis_url=redis_url,
-            data_dir=data_dir,
+            s3=s3,
+            data_dir=tmp_path / name,  # api-data, worker-data: no volume is shared
             port=port,
         )
         for name in ("api", "worker")
     }
     # the settings that tie the two together are the same on both sides
-    for key in ("GLINT_DATABASE_URL", "GLINT_REDIS_URL", "GLINT_STORE_DIR", "GLINT_QUEUE_BACKEND"):
+    for key in ("GLINT_DATABASE_URL", "GLINT_REDIS_URL", "GLINT_STORE_URL", "GLINT_QUEUE_BACKEND"):
         assert envs["api"][key] == envs["worker"][key], key
     assert envs["api"]["GLINT_QUEUE_BACKEND"] == "celery"
+    assert envs["api"]["GLINT_DATA_DIR"] != envs["worker"]["GLINT_DATA_DIR"]
+    # minio-init's step: the bucket compose points the services at
+    bucket = envs["api"]["GLINT_STORE_URL"].removeprefix("s3://")
+    assert bucket == env_example()["S3_BUCKET"]
+    s3.client().create_bucket(Bucket=bucket)
 
     procs: list[subprocess.Popen] = []
     logs = {name: tmp_path / f"{name}.log" for name in ("api", "worker")}
@@ -298,9 +321,10 @@ def test_compose_processes_run_a_job(
         assert hc.returncode == 0, hc.stdout + hc.stderr
         assert "glint-cpu@" in hc.stdout
 
-        # the worker wrote the run into the store the API serves from
-        store = Path(envs["api"]["GLINT_STORE_DIR"])
-        assert (store / "jobs" / job_id / "run" / "report.md").is_file()
+        # the worker wrote the run into the bucket the API serves from, not to its disk
+        assert f"jobs/{job_id}/run/report.md" in s3.keys(bucket, f"jobs/{job_id}/")
+        api_disk = [p for p in (tmp_path / "api").rglob("*") if job_id in str(p)]
+        assert not [p for p in api_disk if p.is_file()], api_disk
     finally:
         for p in reversed(procs):
             _stop(p)
