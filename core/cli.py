@@ -180,6 +180,55 @@ def _cmd_demo(args: argparse.Namespace) -> int:
     return 0 if result.status == "succeeded" else 3
 
 
+def _cmd_sfm(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from core.scene.sfm import SfmError, SfmOptions, run_sfm
+
+    try:
+        opts = SfmOptions(
+            matching=args.matching,
+            mapper=args.mapper,
+            feature_masks=args.feature_masks,
+            min_registered=args.min_registered,
+            overwrite=args.overwrite,
+            verbose=args.verbose,
+        )
+    except ValueError as exc:
+        raise GlintError(str(exc)) from None
+    bars: dict[str, tqdm] = {}
+
+    def on_event(e: dict) -> None:
+        if e["type"] == "sfm":
+            bar = bars.get(e["stage"])
+            if bar is None:
+                for b in bars.values():
+                    b.close()
+                bar = bars[e["stage"]] = tqdm(
+                    total=e["total"], desc=e["stage"], unit="step", disable=args.quiet
+                )
+            bar.total = e["total"]
+            bar.update(e["done"] - bar.n)
+
+    try:
+        result = run_sfm(args.images, args.out, masks=args.masks, options=opts, on_event=on_event)
+    except SfmError as exc:
+        if exc.report is not None:
+            from core.scene.sfm.report import report_text
+
+            print(report_text(exc.report), file=sys.stderr, end="")
+        raise
+    finally:
+        for b in bars.values():
+            b.close()
+    print(result.text(), end="")
+    print(
+        f"wrote the scene to {result.scene} (sfm_report.json, sfm_report.txt); "
+        f"train it with: glint train {result.scene} --out RUN"
+    )
+    return 0
+
+
 def _register_core(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="versions, devices and rasteriser backends available here")
     p.set_defaults(func=_cmd_info)
@@ -195,6 +244,39 @@ def _register_core(sub: argparse._SubParsersAction) -> None:
         "--downscale", type=float, default=1.0, help="divide image size by this on load (>= 1)"
     )
     p.set_defaults(func=_cmd_validate)
+    p = sub.add_parser(
+        "sfm",
+        help="recover cameras for a folder of photos (structure from motion, pycolmap)",
+        description="Extracts SIFT features, matches image pairs (all pairs up to 40 images, "
+        "retrieved neighbours above), maps incrementally, undistorts, and writes a COLMAP "
+        "scene (images/, masks/, sparse/0) with sfm_report.json/.txt into --out. Fails "
+        "(exit 2, --out untouched) when too few images register, naming them.",
+    )
+    p.add_argument("images", help="folder of photos (JPEG, PNG, TIFF, ...)")
+    p.add_argument("--out", required=True, help="scene folder to write (must be new or empty)")
+    p.add_argument("--masks", help="folder of object masks named like the images (white = object)")
+    p.add_argument(
+        "--matching",
+        choices=["auto", "exhaustive", "retrieval"],
+        default="auto",
+        help="which pairs to match (auto: exhaustive up to 40 images, retrieval above)",
+    )
+    p.add_argument("--mapper", choices=["incremental", "global"], default="incremental")
+    p.add_argument(
+        "--feature-masks",
+        action="store_true",
+        help="keep keypoints off the object (needs --masks; off by default, see docs/capture.md)",
+    )
+    p.add_argument(
+        "--min-registered",
+        type=float,
+        default=0.8,
+        help="fail unless at least this fraction of the images registers (default 0.8)",
+    )
+    p.add_argument("--overwrite", action="store_true", help="replace a non-empty --out")
+    p.add_argument("--verbose", action="store_true", help="show COLMAP's own log")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_cmd_sfm)
     p = sub.add_parser(
         "train",
         help="train PGSR-DR on a scene folder",

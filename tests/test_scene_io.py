@@ -335,6 +335,22 @@ def test_llff_prefers_matching_images_folder(written: Callable, tmp_path: Path) 
     assert v.camera.intrinsics.fx == pytest.approx(44.444441 / 2, abs=1e-5)
 
 
+def test_colmap_masks_folder(written: Callable, tmp_path: Path) -> None:
+    """``masks/`` beside ``images/`` (what ``glint sfm`` writes) replaces alpha; named by
+    stem or COLMAP's ``<name>.png``; once there, every image needs one."""
+    root = written("colmap", tmp_path / "c")
+    names = sorted(p.name for p in (root / "images").iterdir())
+    for k, name in enumerate(names):
+        target = f"{name}.png" if k == 0 else f"{Path(name).stem}.png"  # a.png.png, b.png
+        write_image(root / "masks" / target, torch.full((32, 32), 0.25), encode_srgb=False)
+    scene = load_scene(root, test_every=0)
+    assert all(float(v.mask.mean()) == pytest.approx(0.25, abs=3e-3) for v in scene.views)
+    (root / "masks" / names[-1]).with_suffix(".png").unlink()
+    with pytest.raises(SceneError, match="no mask for image") as info:
+        load_scene(root)
+    assert info.value.file == str(root / "masks" / Path(names[-1]).with_suffix(".png"))
+
+
 def test_detect_nested_folder_and_marker_file(written: Callable, tmp_path: Path) -> None:
     written("llff", tmp_path / "upload" / "scene")
     assert detect_format(tmp_path / "upload") == "llff"

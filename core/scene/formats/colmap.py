@@ -3,8 +3,9 @@
 COLMAP already uses Glint's conventions: world-to-camera rotation (quaternion w, x,
 y, z) and translation, OpenCV axes, pixel centres at +0.5. Only pinhole cameras are
 accepted (distortion models with all-zero coefficients count as pinhole). Images
-live in ``images/`` beside ``sparse/0`` (or ``sparse/``); the 3D points become the
-scene's initial point cloud and set its bounds.
+live in ``images/`` beside ``sparse/0`` (or ``sparse/``), optional object masks
+(white = object) in ``masks/`` named like the images (``glint sfm`` writes them);
+the 3D points become the scene's initial point cloud and set its bounds.
 """
 
 from __future__ import annotations
@@ -371,8 +372,31 @@ def image_pose(img: ColmapImage, *, file: Path) -> np.ndarray:
     return validate_rigid(M, file=file, field=field)
 
 
+def find_mask(folder: Path, name: str) -> Path | None:
+    """The mask of image ``name`` in ``folder``: same name, same stem with an image
+    extension (``a.JPG`` → ``a.png``), or COLMAP's ``a.JPG.png``."""
+    rel = PurePosixPath(name)
+    cands = [folder / name, folder / f"{name}.png"]
+    cands += [folder / rel.with_suffix(e) for ext in IMAGE_EXTS for e in (ext, ext.upper())]
+    return next((c for c in cands if c.is_file()), None)
+
+
+def _mask(root: Path, name: str) -> Path | None:
+    """The image's mask when ``masks/`` exists (then every image needs one), else None."""
+    folder = root / "masks"
+    if not folder.is_dir():
+        return None
+    m = find_mask(folder, name)
+    if m is None:
+        raise SceneError(
+            f"no mask for image {name} (masks/ must cover every image, named like it)",
+            file=folder / PurePosixPath(name).with_suffix(".png"),
+        )
+    return m
+
+
 def load(root: Path, opts: LoadOptions) -> Scene:
-    """Load a COLMAP scene folder: ``sparse/0`` (or ``sparse``) + ``images/``."""
+    """Load a COLMAP scene folder: ``sparse/0`` (or ``sparse``) + ``images/`` (+ ``masks/``)."""
     sparse = find_sparse_dir(root)
     if sparse is None:
         raise SceneError("no COLMAP model (sparse/0/cameras.{bin,txt})", file=root / "sparse")
@@ -410,6 +434,7 @@ def load(root: Path, opts: LoadOptions) -> Scene:
                 image=path,
                 world_to_cam=image_pose(img, file=model.files["images"]),
                 intrinsics=intr[img.camera_id],
+                mask=_mask(root, img.name),
                 meta={"colmap_image_id": img.id, "colmap_camera_id": img.camera_id},
             )
         )
