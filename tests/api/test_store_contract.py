@@ -100,10 +100,13 @@ def test_bucket_copy_follows_the_bucket(s3: S3Server, tmp_path: Path) -> None:
     run_a = worker_a.local("jobs/j/run")
     (run_a / "checkpoint.pt").write_bytes(b"iteration 10")
     (run_a / "metrics.jsonl").write_bytes(b'{"iteration": 10}\n')
-    assert worker_a.push("jobs/j/run") == 2
+    big = os.urandom(2 * PART_BYTES + 3)  # a file of several parts: sent in parallel
+    (run_a / "renders.bin").write_bytes(big)
+    assert worker_a.push("jobs/j/run") == 3
     assert worker_a.push("jobs/j/run") == 0  # unchanged files are not sent again
     run_b = worker_b.local("jobs/j/run")
     assert (run_b / "checkpoint.pt").read_bytes() == b"iteration 10"
+    assert (run_b / "renders.bin").read_bytes() == big
     (run_b / "checkpoint.pt").write_bytes(b"iteration 20")
     worker_b.push("jobs/j/run")
     (run_a / "stray.txt").write_bytes(b"not in the bucket")

@@ -31,6 +31,7 @@ from api.service.store.s3_client import NOT_FOUND_CODES, S3Location, error_code,
 
 READ_CHUNK = 256 * 1024
 DELETE_BATCH = 1000  # DeleteObjects takes at most this many keys
+UPLOAD_THREADS = 4  # parallel parts of a file upload (bench/store_io.py: 1.6x on 100 MB)
 
 
 class _S3PendingWrite:
@@ -184,25 +185,30 @@ class S3Store:
         return pending.commit()
 
     def upload_file(self, key: str, src: Path) -> str:
-        """Upload a local file (one PUT, or parts for a large one); its new ETag."""
+        """Upload a local file (one PUT, or parts for a large one); its new ETag.
+
+        A file on disk can be read at any offset, so its parts go out in parallel
+        (boto3's transfer manager, ``UPLOAD_THREADS`` at a time): a runner's checkpoint
+        push blocks training, and one connection rarely fills a link to S3."""
         check_key(key)
         size = src.stat().st_size
-        if size <= self.part_bytes:
-            with self.errors():
+        s3_key = self.location.key(key)
+        with self.errors():
+            if size <= self.part_bytes:
                 res = self.client.put_object(
-                    Bucket=self.location.bucket, Key=self.location.key(key), Body=src.read_bytes()
+                    Bucket=self.location.bucket, Key=s3_key, Body=src.read_bytes()
                 )
-            return str(res.get("ETag", ""))
-        pending = self.begin(key)
-        try:
-            with open(src, "rb") as fh:
-                while chunk := fh.read(self.part_bytes):
-                    pending.write(chunk)
-        except BaseException:
-            pending.abort()
-            raise
-        pending.commit()
-        return pending.etag
+                return str(res.get("ETag", ""))
+            from boto3.s3.transfer import TransferConfig
+
+            config = TransferConfig(
+                multipart_threshold=self.part_bytes,
+                multipart_chunksize=self.part_bytes,
+                max_concurrency=UPLOAD_THREADS,
+            )
+            self.client.upload_file(str(src), self.location.bucket, s3_key, Config=config)
+            res = self.client.head_object(Bucket=self.location.bucket, Key=s3_key)
+        return str(res.get("ETag", ""))
 
     # -- reading ---------------------------------------------------------------------
     def open(self, key: str) -> BinaryIO:

@@ -125,6 +125,8 @@ def unavailable(exc: BaseException, where: str) -> StoreUnavailableError | None:
         PartialCredentialsError,
     )
 
+    if type(exc).__name__ == "S3UploadFailedError" and exc.__context__ is not None:
+        return unavailable(exc.__context__, where)  # boto3's transfer manager wraps the cause
     if isinstance(exc, NoCredentialsError | PartialCredentialsError):
         return StoreUnavailableError(f"no credentials for {where}: {exc}")
     if isinstance(exc, ClientError):
