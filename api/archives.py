@@ -141,11 +141,13 @@ class _Budget:
 
 
 def _copy(src: BinaryIO, staged: Staged, declared: int) -> None:
-    """Copy a member, refusing to write more bytes than its header declared."""
+    """Copy a member, refusing to write more bytes than its header declared; then seal
+    it (a bucket store sends its last part now: the archive's files are not held)."""
     while chunk := src.read(COPY_CHUNK):
         if staged.pending.size + len(chunk) > declared:
             raise too_large(f"archive member '{staged.path}' is larger than its header says")
         staged.pending.write(chunk)
+    staged.pending.seal()
 
 
 def _zip_members(zf: zipfile.ZipFile, budget: _Budget) -> Iterator[tuple[zipfile.ZipInfo, str]]:

@@ -102,6 +102,8 @@ class _PartMachine:
             elif kind == "data":
                 self._data(payload)
             elif kind == "end_part":
+                if self.current is not None:  # its last bytes go out now, not at commit:
+                    self.current.pending.seal()  # a request of many files holds one part
                 self.current = None
             elif kind == "end":
                 self.ended = True
