@@ -25,6 +25,7 @@ def test_health_needs_no_key(server: LiveServer) -> None:
     assert r.status_code == 200 and r.json() == {
         "status": "ok",
         "database": "ok",
+        "store": "ok",
         "version": r.json()["version"],
     }
 
