@@ -351,6 +351,31 @@ def test_colmap_masks_folder(written: Callable, tmp_path: Path) -> None:
     assert info.value.file == str(root / "masks" / Path(names[-1]).with_suffix(".png"))
 
 
+def _set_exposure(path: Path, seconds: float, f_number: float = 4.0) -> None:
+    """Rewrite an image with EXIF shutter time and aperture (pixels unchanged)."""
+    import OpenImageIO as oiio
+
+    buf = oiio.ImageBuf(str(path))
+    buf.specmod().attribute("ExposureTime", seconds)
+    buf.specmod().attribute("FNumber", f_number)
+    buf.write(str(path))
+
+
+def test_exposure_differences_are_a_warning(written: Callable, tmp_path: Path) -> None:
+    """Auto-exposure captures: the photos that differ by more than 1/3 stop are named."""
+    root = written("colmap", tmp_path / "c")
+    images = sorted((root / "images").iterdir())
+    for p in images:
+        _set_exposure(p, 1 / 60)
+    assert not any("exposure" in w for w in load_scene(root).meta["warnings"])
+    _set_exposure(images[2], 1 / 50)  # a quarter stop: the same exposure to a camera
+    assert not any("exposure" in w for w in load_scene(root).meta["warnings"])
+    _set_exposure(images[3], 1 / 15)
+    (warning,) = [w for w in load_scene(root).meta["warnings"] if "exposure" in w]
+    assert "2.0 stops" in warning and images[3].name in warning and "1/15 s f/4" in warning
+    assert "1 of 7 photos" in warning and "manual" in warning
+
+
 def test_detect_nested_folder_and_marker_file(written: Callable, tmp_path: Path) -> None:
     written("llff", tmp_path / "upload" / "scene")
     assert detect_format(tmp_path / "upload") == "llff"

@@ -25,6 +25,7 @@ from torch import Tensor
 
 from core.errors import SceneError
 from core.scene.cameras import Camera, Intrinsics
+from core.scene.exposure import exposure_warning
 from core.scene.imageio import read_image, read_mask
 from core.scene.views import Scene, View, bounds_from_cameras
 
@@ -458,6 +459,8 @@ def finish(
         raise SceneError("the scene has no views", file=root)
     tr, te = cap_views(specs_train, specs_test, opts.max_views)
     views = load_views(tr + te, opts, downscale)
+    if warning := exposure_warning([s.image for s in tr + te]):
+        meta = {**(meta or {}), "warnings": [*(meta or {}).get("warnings", []), warning]}
     return build_scene(
         views[: len(tr)],
         views[len(tr) :],

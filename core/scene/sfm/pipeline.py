@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from core.scene.exposure import exposure_warning
 from core.scene.sfm.errors import SfmCancelledError, SfmError
 from core.scene.sfm.export import drop_background_points, write_colmap_scene
 from core.scene.sfm.features import extract, keypoint_counts, write_feature_masks
@@ -309,6 +310,7 @@ def _report(
         "mean_reprojection_error_px": (
             float(rec.compute_mean_reprojection_error()) if rec.num_reg_images() else None
         ),
+        "warnings": [w for w in [exposure_warning([im.path for im in inputs])] if w],
         "pycolmap": pycolmap.__version__,
     }
 

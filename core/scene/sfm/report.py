@@ -62,6 +62,7 @@ def report_text(r: dict[str, Any]) -> str:
             f"camera {c['id']}: {c['width']}x{c['height']} fx {p[0]:.2f} fy {p[1]:.2f} "
             f"cx {p[2]:.2f} cy {p[3]:.2f} (undistorted pinhole)"
         )
+    lines += [f"warning: {w}" for w in r.get("warnings", [])]
     s = r.get("seconds", {})
     parts = ", ".join(f"{k} {v:.1f} s" for k, v in s.items() if k != "total")
     lines.append(f"time {s.get('total', 0):.1f} s ({parts}); peak memory {r['peak_rss_mb']:.0f} MB")
