@@ -23,6 +23,7 @@ if TYPE_CHECKING:
 # (key, header, digits, better: +1 higher, -1 lower, 0 neither)
 COLUMNS: tuple[tuple[str, str, int, int], ...] = (
     ("cd_x100", "CD×10² ↓", 3, -1),
+    ("cd_floor_x100", "perfect CD×10²", 3, 0),
     ("cd_x100_seen", "CD×10² seen ↓", 3, -1),
     ("fscore", "F@0.01 ↑", 3, 1),
     ("psnr", "PSNR ↑", 2, 1),
@@ -32,6 +33,9 @@ COLUMNS: tuple[tuple[str, str, int, int], ...] = (
     ("train_seconds", "train time (s)", 0, 0),
     ("normal_error_deg", "normal err (°) ↓", 2, -1),
     ("depth_abs_error", "depth err ↓", 4, -1),
+    ("envmap_psnr", "env map PSNR ↑", 2, 1),
+    ("envmap_log_correlation", "env map corr ↑", 3, 1),
+    ("specular_share", "specular share", 3, 0),
     ("n_gaussians", "#Gaussians", 0, 0),
     ("dropped", "dropped > 1.1", 0, 0),
 )
@@ -137,6 +141,9 @@ TIME_COLUMNS: tuple[tuple[str, str, int, int], ...] = (
     ("psnr", "PSNR ↑", 2, 1),
     ("normal_error_deg", "normal err (°) ↓", 2, -1),
     ("depth_abs_error", "depth err ↓", 4, -1),
+    ("envmap_psnr", "env map PSNR ↑", 2, 1),
+    ("envmap_log_correlation", "env map corr ↑", 3, 1),
+    ("specular_share", "specular share", 3, 0),
 )
 
 

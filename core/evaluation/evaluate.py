@@ -20,8 +20,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from core.evaluation.envmap_accuracy import (
+    envmap_accuracy,
+    specular_share,
+)
 from core.evaluation.geometry import (
     DEFAULT_CHAMFER_POINTS,
+    chamfer_floor_x100,
     geometry_errors,
     load_gt_points,
     mesh_chamfer,
@@ -211,8 +216,11 @@ def evaluate_run(
     ev["chamfer"] = None
     if gt is not None and len(mesh.faces):
         ev["chamfer"] = mesh_chamfer(mesh, gt, n_points=n_points)
+        ev["chamfer"]["floor_x100"] = chamfer_floor_x100(scene.root, n_points)
     elif gt is not None:
         ev["chamfer"] = {"error": "the extracted mesh is empty"}
+    ev["envmap"] = envmap_accuracy(model, scene.train, scene.root, run)
+    ev["specular_share"] = specular_share(model, views)
     ev["summary"] = summarize(ev)
     ev["eval_seconds"] = round(time.perf_counter() - t0, 2)
     atomic_json(run / EVAL_FILE, ev)
@@ -225,9 +233,11 @@ def summarize(ev: dict[str, Any]) -> dict[str, Any]:
     ch = ev.get("chamfer") or {}
     geo = ev.get("geometry") or {}
     img = ev.get("image") or {}
+    env = ev.get("envmap") or {}
     return {
         "cd_x100": ch.get("cd_x100"),
         "cd_x100_seen": ch.get("cd_x100_seen"),
+        "cd_floor_x100": ch.get("floor_x100"),
         "fscore": ch.get("fscore"),
         "fscore_seen": ch.get("fscore_seen"),
         "dropped": ch.get("dropped"),
@@ -239,6 +249,9 @@ def summarize(ev: dict[str, Any]) -> dict[str, Any]:
         "normal_error_deg": geo.get("normal_error_deg"),
         "depth_abs_error": geo.get("depth_abs_error"),
         "n_gaussians": ev.get("n_gaussians"),
+        "envmap_psnr": env.get("psnr"),
+        "envmap_log_correlation": env.get("log_correlation"),
+        "specular_share": ev.get("specular_share"),
     }
 
 
@@ -267,11 +280,15 @@ def evaluation_section(ev: dict[str, Any]) -> str:
         f"| PSNR (dB), {img['views']} test views | {fmt_value(s['psnr'])} |",
         f"| SSIM | {fmt_value(s['ssim'], 4)} |",
         f"| LPIPS | {fmt_value(s['lpips'], 4)} |",
-        f"| CD ×10² | {fmt_value(s['cd_x100'], 3)} |",
+        f"| CD ×10² (a perfect surface: {fmt_value(s.get('cd_floor_x100'), 3)}) "
+        f"| {fmt_value(s['cd_x100'], 3)} |",
         f"| CD ×10² (seen GT points) | {fmt_value(s['cd_x100_seen'], 3)} |",
         f"| F-score @ 0.01 | {fmt_value(s['fscore'], 3)} |",
         f"| normal error (°) | {fmt_value(s['normal_error_deg'])} |",
         f"| depth error (abs) | {fmt_value(s['depth_abs_error'], 4)} |",
+        f"| env map PSNR after exposure fit (dB) | {fmt_value(s.get('envmap_psnr'))} |",
+        f"| env map log-luminance correlation | {fmt_value(s.get('envmap_log_correlation'), 3)} |",
+        f"| specular share of the colour | {fmt_value(s.get('specular_share'), 3)} |",
         f"| FPS ({fps['resolution'][0]}×{fps['resolution'][1]}, {fps['device']}) "
         f"| {fmt_value(fps['fps'], 1)} |",
         "",
@@ -289,6 +306,15 @@ def evaluation_section(ev: dict[str, Any]) -> str:
         )
     elif ch is None:
         lines.append("No gt_points.ply in the scene: no Chamfer distance.")
+    env = ev.get("envmap")
+    if env and "psnr" in env:
+        lines.append(
+            f"Env map: the learned map against the scene's envmap.exr over the "
+            f"{fmt_value(env['directions'])} directions the training views reflect "
+            f"({env['normals']} normals; {env['seen_fraction']:.0%} of the sphere), after "
+            f"one exposure factor ({env['exposure']:.3g}); PSNR in display space "
+            f"(sRGB of radiance clipped at 1). Picture: {env.get('picture', '–')}."
+        )
     lines.append(
         f"FPS: median of {fps['frames']} timed frames after {fps['warmup']} warm-up frames "
         f"({fps['backend']} backend, {fps['threads']} threads)."

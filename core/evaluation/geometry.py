@@ -6,6 +6,7 @@ the per-pixel normal and depth errors are cheaper and say where a surface is wro
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -86,6 +87,29 @@ def load_gt_points(scene_root: Path | None) -> dict[str, np.ndarray] | None:
     if seen.is_file():
         out["seen"] = np.load(seen).astype(bool)
     return out
+
+
+def chamfer_floor_x100(scene_root: Path | None, n_points: int) -> float | None:
+    """The CD ×10² a perfect surface scores against this scene's GT points with
+    ``n_points`` predicted points (``meta.json:gt.chamfer_sampling_floor_x100``), or
+    None when the scene does not state it for that count."""
+    if scene_root is None:
+        return None
+    meta = Path(scene_root) / "meta.json"
+    if not meta.is_file():
+        return None
+    try:
+        floors = json.loads(meta.read_text()).get("gt", {}).get("chamfer_sampling_floor_x100")
+    except (json.JSONDecodeError, AttributeError):
+        return None
+    if not isinstance(floors, dict):
+        return None
+    if n_points % 1_000_000 == 0:
+        key = f"pred_{n_points // 1_000_000}M_points"
+    else:
+        key = f"pred_{n_points // 1000}k_points"
+    value = floors.get(key)
+    return float(value) if isinstance(value, int | float) else None
 
 
 def mesh_chamfer(

@@ -315,9 +315,10 @@ def write_synthetic_scene(
 ) -> Path:
     """Render a scene and write it in Blender (NeRF-synthetic) format; returns the folder.
 
-    ``ground_truth``: also write what the dev scenes ship for scoring geometry,
-    ``{split}_gt/{name}_depth.exr`` and ``_normal.exr`` (exact, at pixel centres) and
-    ``gt_points.ply`` (``gt_points`` points uniform on the surface, with normals).
+    ``ground_truth``: also write what the dev scenes ship for scoring geometry and
+    lighting, ``{split}_gt/{name}_depth.exr`` and ``_normal.exr`` (exact, at pixel
+    centres), ``gt_points.ply`` (``gt_points`` points uniform on the surface, with
+    normals) and ``envmap.exr`` (the environment as a lat-long map).
     """
     from core.scene.formats.writers import write_blender
 
@@ -325,7 +326,21 @@ def write_synthetic_scene(
     out = write_blender(scene, out_dir)
     if ground_truth:
         write_ground_truth(scene, out, shape, n_points=gt_points)
+        write_envmap_latlong(kwargs.get("env") or default_env, out / "envmap.exr")
     return out
+
+
+def write_envmap_latlong(env: EnvFn, path: str | Path, height: int = 128) -> Path:
+    """The environment as a float lat-long EXR (2H × H) in the dev data's convention:
+    for d = (x, y, z), column = (0.5 − atan2(y, x)/2π)·W − 0.5, row = acos(z)/π·(H − 1)."""
+    from core.scene.imageio import write_image
+
+    width = 2 * height
+    theta = torch.arange(height, dtype=torch.float64) / (height - 1) * math.pi
+    phi = (0.5 - (torch.arange(width, dtype=torch.float64) + 0.5) / width) * 2 * math.pi
+    tt, pp = torch.meshgrid(theta, phi, indexing="ij")
+    dirs = torch.stack([tt.sin() * pp.cos(), tt.sin() * pp.sin(), tt.cos()], dim=-1)
+    return write_image(path, env(dirs.float()), encode_srgb=False)
 
 
 def write_ground_truth(scene: Scene, out_dir: str | Path, shape: str, n_points: int) -> None:
