@@ -89,8 +89,14 @@ def discard(store: ArtifactStore, keys: list[str]) -> None:
 class Sweeper:
     """:func:`sweep` every ``period_s`` on a thread of its own (the API runs one)."""
 
-    def __init__(self, database: Database, store: ArtifactStore, period_s: float) -> None:
-        self.database, self.store, self.period_s = database, store, period_s
+    def __init__(
+        self,
+        database: Database,
+        store: ArtifactStore,
+        period_s: float,
+        grace_s: float = ORPHAN_GRACE_S,
+    ) -> None:
+        self.database, self.store, self.period_s, self.grace_s = database, store, period_s, grace_s
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="glint-sweeper", daemon=True)
 
@@ -101,7 +107,7 @@ class Sweeper:
     def _loop(self) -> None:
         while not self._closed.wait(self.period_s):
             try:
-                sweep(self.database, self.store)
+                sweep(self.database, self.store, grace_s=self.grace_s)
             except StoreUnavailableError as exc:
                 log.warning("sweep skipped: %s", exc)
             except Exception:

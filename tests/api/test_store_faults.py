@@ -15,7 +15,7 @@ import pytest
 from sqlalchemy import delete
 
 from api.service.models import Scene, SceneFile
-from api.service.sweeper import sweep
+from api.service.sweeper import Sweeper, sweep
 from tests.api.support import LiveServer, ThreadQueue, make_settings, multipart, wait_for
 from tests.s3_server import PART_BYTES, S3Server
 
@@ -157,9 +157,14 @@ def test_deletes_remove_objects_and_the_sweep_removes_orphans(
         s.execute(delete(SceneFile).where(SceneFile.scene_id == orphan))
         s.execute(delete(Scene).where(Scene.id == orphan))
     abandoned = s3.client().create_multipart_upload(Bucket=bucket, Key="glint/scenes/x/files/y")
-    store = good.app.state.store
-    swept = sweep(good.database, store, grace_s=0)
-    assert swept.scenes >= 1 and swept.uploads >= 1
+    # the API's periodic sweep (GLINT_STORE_SWEEP_S; here every 0.2 s, no grace)
+    sweeper = Sweeper(good.database, good.app.state.store, period_s=0.2, grace_s=0).start()
+    try:
+        wait_for(lambda: not [k for k in s3.keys(bucket) if orphan in k], timeout=30)
+        wait_for(lambda: not s3.uploads(bucket), timeout=30)
+    finally:
+        sweeper.close()
+    assert sweep(good.database, good.app.state.store, grace_s=0).scenes == 0  # nothing left
     keys = s3.keys(bucket)
     assert not [k for k in keys if orphan in k]
     assert f"glint/scenes/{kept}/files/a.txt" in keys  # what a row accounts for stays

@@ -192,6 +192,7 @@ def _iteration(c: httpx.Client, job_id: str) -> int:
 
 def test_outage_mid_job_then_another_host_resumes_from_the_bucket(
     s3: S3Server,
+    bucket: str,
     server: LiveServer,
     workers: Workers,
     client: httpx.Client,
@@ -203,6 +204,9 @@ def test_outage_mid_job_then_another_host_resumes_from_the_bucket(
     scene_id = ready_scene(client, scene)
     job_id = submit(client, scene_id, iterations=400, checkpoint_every=10)
     wait_for(lambda: _iteration(client, job_id) >= 20, timeout=120, every=0.1)
+    # its checkpoints are in the bucket, yet nothing is listed before the run is stored
+    assert f"glint/jobs/{job_id}/run/checkpoint.pt" in s3.keys(bucket, f"glint/jobs/{job_id}/")
+    assert list_all(client, f"/v1/jobs/{job_id}/artifacts") == []
     busy = [w["id"] for w in list_all(client, "/v1/workers") if w["current_job"] == job_id]
     (runner,) = [w for w in workers.procs.values() if w.node in busy]
 
