@@ -67,7 +67,8 @@ class Settings(BaseSettings):
         "AWS_SECRET_ACCESS_KEY, AWS_PROFILE, an instance or task role)",
     )
     s3_secret_access_key: str | None = Field(
-        None, description="secret key going with s3_access_key_id"
+        None,
+        description="secret key going with s3_access_key_id (both set, or the AWS chain is used)",
     )
     s3_addressing_style: Literal["auto", "path", "virtual"] = Field(
         "auto",

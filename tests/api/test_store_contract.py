@@ -120,9 +120,17 @@ def test_bucket_copy_follows_the_bucket(s3: S3Server, tmp_path: Path) -> None:
 
 
 def test_wrong_credentials_and_unreachable_endpoints_are_unavailable(
-    s3: S3Server, tmp_path: Path
+    s3: S3Server, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     bucket = s3.bucket()
+    for var in [v for v in os.environ if v.startswith("AWS_")]:
+        monkeypatch.delenv(var)
+    monkeypatch.setenv("AWS_CONFIG_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_SHARED_CREDENTIALS_FILE", str(tmp_path / "none"))
+    monkeypatch.setenv("AWS_EC2_METADATA_DISABLED", "true")
+    half = _s3_store(s3, tmp_path / "h", bucket, s3_secret_access_key="")  # the AWS chain
+    with pytest.raises(StoreUnavailableError, match="no credentials"):
+        half.check()
     wrong = _s3_store(s3, tmp_path / "w", bucket, s3_secret_access_key="not-the-secret")
     with pytest.raises(StoreUnavailableError, match="refused the credentials"):
         wrong.check()

@@ -98,9 +98,10 @@ def make_client(
         request_checksum_calculation="when_required",
         response_checksum_validation="when_required",
     )
+    explicit = bool(access_key_id and secret_access_key)  # half a pair: the AWS chain
     session = boto3.session.Session(
-        aws_access_key_id=access_key_id or None,
-        aws_secret_access_key=secret_access_key or None,
+        aws_access_key_id=access_key_id if explicit else None,
+        aws_secret_access_key=secret_access_key if explicit else None,
         region_name=region or None,
     )
     return session.client("s3", endpoint_url=endpoint, config=config)
