@@ -217,6 +217,8 @@ def _cmd_sfm(args: argparse.Namespace) -> int:
             from core.scene.sfm.report import report_text
 
             print(report_text(exc.report), file=sys.stderr, end="")
+        if len(exc.unregistered) > 20:  # the message names 20
+            print(f"not registered (all): {', '.join(exc.unregistered)}", file=sys.stderr)
         raise
     finally:
         for b in bars.values():

@@ -6,6 +6,8 @@ from __future__ import annotations
 import json
 import math
 import shutil
+import subprocess
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -177,6 +179,20 @@ def test_cli_reports_the_error(tmp_path: Path, capsys: pytest.CaptureFixture) ->
     assert "glint sfm: error: structure from motion needs at least 3 images" in (
         capsys.readouterr().err
     )
+
+
+def test_pycolmap_comes_after_openimageio(tmp_path: Path) -> None:
+    """Taking pycolmap through Glint keeps PNG writing alive in a fresh process (pycolmap
+    imported first breaks OpenImageIO's PNG writer: core/scene/sfm/colmap_lib.py)."""
+    code = (
+        "import numpy as np\n"
+        "from core.scene.sfm.colmap_lib import pycolmap\n"
+        "from core.scene.imageio import write_image\n"
+        f"for k in range(3): write_image({str(tmp_path)!r} + f'/m{{k}}.png', np.zeros((8, 8)))\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert len(list(tmp_path.glob("m*.png"))) == 3
 
 
 # -- pair selection ------------------------------------------------------------------------

@@ -18,6 +18,7 @@ from typing import Any
 import numpy as np
 
 from core.scene.imageio import read_mask, write_image
+from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.inputs import InputImage
 
 JPEG_QUALITY = 95
@@ -61,8 +62,6 @@ def write_colmap_scene(
     ``staged`` maps the names COLMAP used (plain, unique) to the user's images, whose
     own file names the scene keeps.
     """
-    import pycolmap
-
     registered = sorted(im.name for im in rec.images.values() if im.has_pose)
     model_dir = work_dir / "model"
     model_dir.mkdir(parents=True, exist_ok=True)

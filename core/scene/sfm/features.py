@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from core.scene.imageio import read_mask, write_image
+from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.errors import SfmError
 from core.scene.sfm.inputs import InputImage
 
@@ -57,8 +58,6 @@ def extract(
     """Import every image (one camera per group), then extract SIFT ``chunk`` images
     at a time (default: about 8 calls; each call has a start-up cost), reporting
     ``on_step(done, total)``."""
-    import pycolmap
-
     names = [im.name for im in images]
     reader = pycolmap.ImageReaderOptions()
     if feature_mask_dir is not None:
@@ -88,8 +87,6 @@ def extract(
 
 def _check_extracted(database: Path, images: Sequence[InputImage]) -> None:
     """Every image must be in the database with keypoints; COLMAP skips unreadable ones."""
-    import pycolmap
-
     db = pycolmap.Database.open(database)
     try:
         stored = {im.name: im.image_id for im in db.read_all_images()}
@@ -113,8 +110,6 @@ def _check_extracted(database: Path, images: Sequence[InputImage]) -> None:
 
 def descriptors(database: Path, names: Sequence[str]) -> list[np.ndarray]:
     """SIFT descriptors (uint8, (n_i, 128)) of each image, in the order of ``names``."""
-    import pycolmap
-
     db = pycolmap.Database.open(database)
     try:
         ids = {im.name: im.image_id for im in db.read_all_images()}
@@ -125,8 +120,6 @@ def descriptors(database: Path, names: Sequence[str]) -> list[np.ndarray]:
 
 def keypoint_counts(database: Path) -> dict[str, int]:
     """Keypoints per image name (for the report)."""
-    import pycolmap
-
     db = pycolmap.Database.open(database)
     try:
         return {im.name: db.num_keypoints_for_image(im.image_id) for im in db.read_all_images()}

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.errors import SfmCancelledError
 
 MAPPERS = ("incremental", "global")
@@ -37,8 +38,6 @@ class MappingResult:
 
 
 def _incremental_options(seed: int, *, relaxed: bool):
-    import pycolmap
-
     o = pycolmap.IncrementalPipelineOptions()
     o.random_seed = seed
     o.mapper.random_seed = seed
@@ -60,8 +59,6 @@ def _run_incremental(
     on_image: Callable[[], None] | None,
     should_stop: Callable[[], bool] | None,
 ) -> dict[int, Any]:
-    import pycolmap
-
     token = pycolmap.CancellationToken()
 
     def next_image() -> None:
@@ -86,8 +83,6 @@ def _run_incremental(
 
 
 def _run_global(database: Path, image_dir: Path, out: Path, seed: int) -> dict[int, Any]:
-    import pycolmap
-
     o = pycolmap.GlobalPipelineOptions()
     o.random_seed = seed
     o.mapper.random_seed = seed
@@ -112,8 +107,6 @@ def map_images(
     ``match_more(names)``: matches the named images against all others before the
     second pass (the pair selection may have skipped the pairs they need).
     """
-    import pycolmap
-
     if mapper not in MAPPERS:
         raise ValueError(f"unknown mapper {mapper!r}; expected one of {MAPPERS}")
     pycolmap.set_random_seed(seed)

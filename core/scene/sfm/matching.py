@@ -5,6 +5,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.features import descriptors
 from core.scene.sfm.pairs import (
     EXHAUSTIVE_MAX_IMAGES,
@@ -51,8 +52,6 @@ def match_pairs(
     descriptors it needs, and 10 calls for 1613 pairs cost 25 % more CPU than one
     (measured on goldcape). Image names must not contain spaces (COLMAP's pair list
     format); :func:`~core.scene.sfm.pipeline.run_sfm` stages images under plain names."""
-    import pycolmap
-
     if not pairs:
         return
     step = chunk or PAIRS_PER_CALL

@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from core.scene.exposure import exposure_warning
+from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.errors import SfmCancelledError, SfmError
 from core.scene.sfm.export import drop_background_points, write_colmap_scene
 from core.scene.sfm.features import extract, keypoint_counts, write_feature_masks
@@ -25,7 +26,7 @@ from core.scene.sfm.inputs import InputImage, collect_images
 from core.scene.sfm.mapping import MAPPERS, map_images
 from core.scene.sfm.matching import STRATEGIES, choose_strategy, match_pairs, plan_pairs
 from core.scene.sfm.pairs import pairs_with
-from core.scene.sfm.report import peak_rss_mb, report_text, write_report
+from core.scene.sfm.report import list_names, peak_rss_mb, report_text, write_report
 
 Event = dict[str, Any]
 STAGES = ("features", "matching", "mapping", "undistort")
@@ -159,8 +160,6 @@ def run_sfm(
     (too few images, no overlap, too few registered: the report names the images
     left out) or SfmCancelledError; in every case ``out`` is left as it was.
     """
-    import pycolmap
-
     opts = options or SfmOptions()
     out = Path(out)
     _check_out(out, opts.overwrite)
@@ -264,8 +263,6 @@ def _renamed(staged: dict[str, InputImage]) -> list[InputImage]:
 
 
 def _verified_pairs(db: Path) -> int:
-    import pycolmap
-
     d = pycolmap.Database.open(db)
     try:
         _, inliers = d.read_two_view_geometry_num_inliers()
@@ -286,7 +283,6 @@ def _report(
     dropped: int,
 ) -> dict[str, Any]:
     import numpy as np
-    import pycolmap
 
     rec = mapping.reconstruction
     reg = mapping.registered
@@ -326,10 +322,18 @@ def _check_registered(report: dict[str, Any], opts: SfmOptions) -> None:
             unregistered=miss,
             report=report,
         )
+    if k == 0:
+        raise SfmError(
+            f"no reconstruction could start: none of the {report['matching']['verified_pairs']} "
+            f"matching image pairs among the {n} images sees enough of the scene from far "
+            "enough apart; the photos overlap too little (take more, ~10-20° apart)",
+            unregistered=miss,
+            report=report,
+        )
     if k < 3 or k < opts.min_registered * n:
         raise SfmError(
             f"registered {k} of {n} images (at least {opts.min_registered:.0%} needed); "
-            f"not registered: {', '.join(miss)}",
+            f"not registered: {list_names(miss)}",
             unregistered=miss,
             report=report,
         )

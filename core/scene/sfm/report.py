@@ -23,7 +23,8 @@ def peak_rss_mb() -> float:
     return r / (1024 * 1024) if sys.platform == "darwin" else r / 1024  # bytes vs KiB
 
 
-def _names(names: list[str], limit: int = 20) -> str:
+def list_names(names: list[str], limit: int = 20) -> str:
+    """``a, b, c`` — at most ``limit`` names, then how many more."""
     more = f" and {len(names) - limit} more" if len(names) > limit else ""
     return ", ".join(names[:limit]) + more
 
@@ -35,9 +36,9 @@ def report_text(r: dict[str, Any]) -> str:
         f"({100 * r['registered'] / max(1, r['images']):.1f} %)",
     ]
     if r.get("unregistered"):
-        lines.append(f"not registered: {_names(r['unregistered'])}")
+        lines.append(f"not registered: {list_names(r['unregistered'])}")
     if r.get("rescued"):
-        lines.append(f"registered in the second pass (weaker evidence): {_names(r['rescued'])}")
+        lines.append(f"registered in the second pass (weaker evidence): {list_names(r['rescued'])}")
     if len(r.get("models", [])) > 1:
         lines.append(f"models found (images each): {r['models']}; the largest was kept")
     m = r.get("matching", {})
