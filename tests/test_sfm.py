@@ -228,6 +228,9 @@ def test_retrieval_finds_the_images_that_share_features() -> None:
     # order neighbours come on top; the pairs an unregistered image still needs
     assert (0, 1) in retrieval_pairs(sim, neighbours=0, window=1)
     assert pairs_with([0], 4, {(0, 1)}) == [(0, 2), (0, 3)]
+    # over budget, a left-out image gets its most similar images: its own group's
+    few = pairs_with([0, 6], len(desc), set(), sim=sim, budget=6)
+    assert len(few) == 6 and all(group_of[i] == group_of[j] for i, j in few)
 
 
 # -- alignment -----------------------------------------------------------------------------

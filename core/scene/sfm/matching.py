@@ -5,6 +5,8 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from core.scene.sfm.colmap_lib import pycolmap
 from core.scene.sfm.features import descriptors
 from core.scene.sfm.pairs import (
@@ -29,12 +31,16 @@ def choose_strategy(n_images: int, requested: str = "auto") -> str:
     return "exhaustive" if n_images <= EXHAUSTIVE_MAX_IMAGES else "retrieval"
 
 
-def plan_pairs(database: Path, names: Sequence[str], strategy: str) -> list[Pair]:
-    """The pairs (indices into ``names``) a strategy matches."""
+def plan_pairs(
+    database: Path, names: Sequence[str], strategy: str
+) -> tuple[list[Pair], np.ndarray | None]:
+    """The pairs (indices into ``names``) a strategy matches, and the image similarity
+    it chose them by (None for exhaustive)."""
     if strategy == "exhaustive":
-        return exhaustive_pairs(len(names))
+        return exhaustive_pairs(len(names)), None
     desc = descriptors(database, names)
-    return retrieval_pairs(similarity(desc, fit_vocabulary(desc)))
+    sim = similarity(desc, fit_vocabulary(desc))
+    return retrieval_pairs(sim), sim
 
 
 def match_pairs(

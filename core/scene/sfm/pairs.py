@@ -107,13 +107,35 @@ def retrieval_pairs(
     return sorted(pairs)
 
 
-def pairs_with(images: Sequence[int], n: int, done: set[tuple[int, int]]) -> list[tuple[int, int]]:
-    """Every not-yet-matched pair between ``images`` and all ``n`` images (i < j)."""
+def pairs_with(
+    images: Sequence[int],
+    n: int,
+    done: set[tuple[int, int]],
+    *,
+    sim: np.ndarray | None = None,
+    budget: int | None = None,
+) -> list[tuple[int, int]]:
+    """Not-yet-matched pairs between ``images`` and the other images (i < j).
+
+    All of them, unless that exceeds ``budget`` pairs: then each image is paired with
+    its most similar images under ``sim`` (an even share of the budget each), so a
+    second chance for many images costs at most ``budget`` matchings.
+    """
+    per = n - 1
+    if budget is not None and sim is not None and images:
+        per = max(1, min(n - 1, budget // len(images)))
     out = set()
     for i in images:
-        for j in range(n):
-            if i != j:
-                p = (min(i, j), max(i, j))
-                if p not in done:
-                    out.add(p)
+        order = np.argsort(-sim[i]) if sim is not None else np.arange(n)
+        picked = 0
+        for j in order:
+            j = int(j)
+            if j == i:
+                continue
+            p = (min(i, j), max(i, j))
+            if p not in done and p not in out:
+                out.add(p)
+                picked += 1
+                if picked >= per:
+                    break
     return sorted(out)

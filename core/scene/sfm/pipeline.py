@@ -201,7 +201,7 @@ def _run(
 
     prog.begin("matching")
     strategy = choose_strategy(len(names), opts.matching)
-    pairs = plan_pairs(db, names, strategy)
+    pairs, sim = plan_pairs(db, names, strategy)
     match_pairs(db, names, pairs, work / "pairs", on_step=prog.step)
     matched = set(pairs)
     prog.end(strategy=strategy, pairs=len(pairs))
@@ -209,7 +209,9 @@ def _run(
     def match_more(missing: list[str]) -> None:
         if strategy == "exhaustive":
             return
-        extra = pairs_with([names.index(n) for n in missing], len(names), matched)
+        missing_idx = [names.index(n) for n in missing]
+        # each left-out image against every other, within the first round's cost
+        extra = pairs_with(missing_idx, len(names), matched, sim=sim, budget=len(pairs))
         match_pairs(db, names, extra, work / "pairs")
         matched.update(extra)
 

@@ -40,7 +40,10 @@ def report_text(r: dict[str, Any]) -> str:
     if r.get("rescued"):
         lines.append(f"registered in the second pass (weaker evidence): {list_names(r['rescued'])}")
     if len(r.get("models", [])) > 1:
-        lines.append(f"models found (images each): {r['models']}; the largest was kept")
+        lines.append(
+            f"the first mapping pass found {len(r['models'])} separate models (images each: "
+            f"{r['models']}); the largest was kept and continued"
+        )
     m = r.get("matching", {})
     lines.append(
         f"matching: {m.get('strategy')} ({m.get('pairs')} pairs tried, "
