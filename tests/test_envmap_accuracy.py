@@ -96,8 +96,14 @@ def test_exposure_fit_ignores_what_the_display_clips() -> None:
     true[:200] *= 500.0  # highlights far beyond what any photo keeps
     learned = 2.5 * true
     assert exposure_fit(learned, true) == pytest.approx(2.5, rel=0.02)
-    # learned clipped where the photos clip: still the same factor
-    assert exposure_fit(learned.clamp(max=1.0), true) == pytest.approx(2.5, rel=0.05)
+    assert exposure_fit(learned, true, 0.2) == pytest.approx(2.5, rel=0.02)
+    # where the photos (exposure k) clip, a map can only learn "at least the clip level"
+    k = 0.8
+    learned = torch.where(true * k > 1.0, torch.full_like(true, 2.5 / k), learned)
+    assert exposure_fit(learned, true, k) == pytest.approx(2.5, rel=0.02)
+    # a plain least-squares fit in linear radiance would follow the highlights instead
+    lsq = float((learned * true).sum() / (true * true).sum())
+    assert lsq < 0.1
 
 
 def test_comparison_picture(mirror, tmp_path: Path) -> None:

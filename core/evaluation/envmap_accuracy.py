@@ -8,11 +8,11 @@ the model's own normals), and both maps are sampled there.
 
 Lighting is recovered up to one global exposure factor: w_r, the base colour and the
 capture's exposure all trade against the map's brightness. The factor is the
-least-squares one in the space the score is taken in (display: sRGB of radiance
-clipped at 1), found by a one-dimensional search, so a highlight the photos clip
-does not drive it. Reported: PSNR after that factor, the Pearson correlation of log
-luminance (scale-free, HDR-aware), the factor itself and the share of the sphere of
-directions that was seen.
+least-squares one in the space the score is taken in: display (sRGB of radiance
+clipped at 1) at the exposure the photos were taken at, found by a one-dimensional
+search, so a highlight the photos clip does not drive it. Reported: PSNR after that
+factor, the Pearson correlation of log luminance (scale-free, HDR-aware), the factor
+itself and the share of the sphere of directions that was seen.
 
 The true map is ``envmap.exr`` in the scene folder, a lat-long image in the dev
 data's convention (``core.render.envmap_io.LatLong``); ``meta.json:envmap.scale`` is
@@ -143,22 +143,25 @@ def _display(x: Tensor) -> Tensor:
     return linear_to_srgb(x.clamp(0.0, 1.0))
 
 
-def exposure_fit(learned: Tensor, true: Tensor) -> float:
-    """The factor s minimising the display-space error of s·true against learned.
+def exposure_fit(learned: Tensor, true: Tensor, photo_exposure: float = 1.0) -> float:
+    """The factor s (learned ≈ s·true) that best matches the two maps in display space
+    at the photos' exposure k: display(k·learned/s) against display(k·true).
 
-    Golden-section search on log s around the linear least-squares start; the error is
-    unimodal in s for non-negative radiance in practice, and the search is bracketed
-    wide (a factor 1000 either way) so a bad start cannot trap it.
+    Golden-section search on log s around the linear least-squares start, bracketed a
+    factor 1000 either way; the error is unimodal in s for non-negative radiance in
+    practice. Scoring at the photos' exposure weighs what the photos could show: a
+    highlight they clip does not drive the factor, and neither does a dark region
+    they crush.
     """
     lt, tt = learned.double(), true.double()
     den = float((tt * tt).sum())
     if den <= 0:
         return 1.0
     start = max(float((lt * tt).sum()) / den, 1e-12)
-    ld = _display(lt)
+    td = _display(tt * photo_exposure)
 
     def err(log_s: float) -> float:
-        return float(((_display(tt * math.exp(log_s)) - ld) ** 2).mean())
+        return float(((_display(lt * (photo_exposure / math.exp(log_s))) - td) ** 2).mean())
 
     lo, hi = math.log(start) - math.log(1000.0), math.log(start) + math.log(1000.0)
     g = (math.sqrt(5.0) - 1.0) / 2.0
@@ -189,14 +192,17 @@ def log_luminance_correlation(learned: Tensor, true: Tensor) -> float:
 
 @torch.no_grad()
 def compare_envmaps(envmap: EnvMap, truth: TrueEnvmap, dirs: Tensor) -> dict[str, Any]:
-    """PSNR (display space, after the exposure fit) and log-luminance correlation of the
-    learned map against the true one over ``dirs``; the fitted factor and coverage."""
+    """PSNR (display space at the photos' exposure, after the exposure fit) and
+    log-luminance correlation of the learned map against the true one over ``dirs``;
+    the fitted factor and coverage. The photos' exposure is the one the scene records
+    (``meta.json:envmap.scale``), else 1."""
     if len(dirs) == 0:
         return {"error": "no reflected directions (no covered pixels)"}
     learned = envmap.sample(dirs.to(envmap.raw)).double().cpu()
     true = truth.sample(dirs).double().cpu()
-    s = exposure_fit(learned, true)
-    mse = float(((_display(true * s) - _display(learned)) ** 2).mean())
+    k = truth.scale if truth.scale is not None else 1.0
+    s = exposure_fit(learned, true, k)
+    mse = float(((_display(learned * (k / s)) - _display(true * k)) ** 2).mean())
     out = {
         "psnr": 10.0 * math.log10(1.0 / max(mse, 1e-20)),
         "log_correlation": log_luminance_correlation(learned, true),
@@ -268,15 +274,17 @@ def save_envmap_comparison(
     exposure: float,
     height: int = 128,
 ) -> Path:
-    """Side-by-side lat-long picture: learned (top) and true × fitted exposure (bottom),
-    both in the true map's convention; directions no training view reflects are greyed."""
+    """Side-by-side lat-long picture, learned (top) over true (bottom), in the true map's
+    convention and at the photos' exposure (the learned map divided by the fitted
+    ``exposure``); directions no training view reflects are greyed."""
     from PIL import Image
 
     ll = truth.latlong
     width = 2 * height
     grid = ll.pixel_directions(height, width)
-    learned = envmap.sample(grid.to(envmap.raw)).cpu()
-    true = truth.sample(grid) * exposure
+    k = truth.scale if truth.scale is not None else 1.0
+    learned = envmap.sample(grid.to(envmap.raw)).cpu() * (k / exposure)
+    true = truth.sample(grid) * k
     row, col = ll.to_pixel(dirs.float(), height, width)
     seen = torch.zeros(height, width, dtype=torch.bool)
     r = row.round().long().clamp(0, height - 1)
