@@ -125,7 +125,7 @@ class _Progress:
             {
                 "type": "sfm",
                 "stage": self.stage,
-                "done": done,
+                "done": min(done, total),
                 "total": total,
                 "elapsed": time.perf_counter() - self.t0,
             }
