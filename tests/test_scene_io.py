@@ -351,6 +351,17 @@ def test_colmap_masks_folder(written: Callable, tmp_path: Path) -> None:
     assert info.value.file == str(root / "masks" / Path(names[-1]).with_suffix(".png"))
 
 
+@pytest.mark.parametrize("fmt", ["blender", "nerfstudio", "colmap", "llff"])
+def test_image_of_another_size_names_the_file(fmt: str, written: Callable, tmp_path: Path) -> None:
+    """A photo resized or swapped after the cameras were made: the error names it."""
+    root = written(fmt, tmp_path / fmt)
+    odd = sorted(p for p in root.rglob("*.png") if "mask" not in p.parts[-2])[1]
+    write_image(odd, torch.rand(24, 40, 3))
+    with pytest.raises(SceneError, match="image is 40x24 but its camera expects 32x32") as info:
+        load_scene(root)
+    assert info.value.file == str(odd)
+
+
 def _set_exposure(path: Path, seconds: float, f_number: float = 4.0) -> None:
     """Rewrite an image with EXIF shutter time and aperture (pixels unchanged)."""
     import OpenImageIO as oiio
