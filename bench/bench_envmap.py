@@ -55,7 +55,7 @@ def main() -> None:
     sync = torch.cuda.synchronize if dev.startswith("cuda") else None
     env = EnvMap(resolution=128, channels=3).to(dev)
     with torch.no_grad():
-        env.raw.normal_()
+        env.log_radiance.normal_()
     bg = torch.ones(3, device=dev)
     rows = []
 

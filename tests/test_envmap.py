@@ -14,7 +14,6 @@ from core.render.envmap import (
     direction_to_face_uv,
     pad_cube,
     sample_cube,
-    softplus_inverse,
     texel_directions,
 )
 
@@ -236,8 +235,8 @@ def test_gradcheck_wrt_texels_including_border_and_corner_paths():
     assert gradcheck(lambda t: sample_cube(t, dirs), (tex,))
     env = EnvMap(resolution=4, channels=2).double()
     with torch.no_grad():
-        env.raw.normal_(generator=g)
-    assert gradcheck(lambda raw: sample_cube(torch.nn.functional.softplus(raw), dirs), (env.raw,))
+        env.log_radiance.normal_(generator=g)
+    assert gradcheck(lambda lr: sample_cube(torch.exp(lr), dirs), (env.log_radiance,))
 
 
 def test_gradcheck_wrt_directions_away_from_texel_boundaries():
@@ -293,7 +292,7 @@ def test_degenerate_directions_give_defined_values_and_finite_gradients():
 def test_lookup_is_scale_invariant_and_keeps_batch_shape():
     env = EnvMap(resolution=8, channels=3)
     with torch.no_grad():
-        env.raw.normal_()
+        env.log_radiance.normal_()
     d = torch.randn(2, 5, 7, 3)
     out = env(d)
     assert out.shape == (2, 5, 7, 3)
@@ -308,33 +307,44 @@ def test_lookup_is_scale_invariant_and_keeps_batch_shape():
 
 def test_envmap_defaults_activation_and_hdr():
     env = EnvMap()
-    assert env.raw.shape == (6, 128, 128, 3)
+    assert env.log_radiance.shape == (6, 128, 128, 3)
     assert (env.resolution, env.channels) == (128, 3)
     torch.testing.assert_close(env.texels(), torch.full((6, 128, 128, 3), 0.5))
-    assert list(env.state_dict()) == ["raw"]
+    assert list(env.state_dict()) == ["log_radiance"]
     small = EnvMap(resolution=4, channels=1, init_value=2.0)
-    assert small.raw.shape == (6, 4, 4, 1)
+    assert small.log_radiance.shape == (6, 4, 4, 1)
     # HDR values far above 1 and small values round-trip through the activation
     vals = torch.tensor([1e-4, 0.02, 0.5, 1.0, 7.0, 60.0, 2500.0]).repeat(14)[:96]
     small.set_texels(vals.view(6, 4, 4, 1))
     torch.testing.assert_close(small.texels(), vals.view(6, 4, 4, 1), rtol=2e-6, atol=0)
-    assert (small.texels() >= 0).all()
-    # gradients stay alive: unit-ish for bright texels, non-zero for dark ones
+    assert (small.texels() > 0).all()
+    # the gradient in log space is the radiance itself: relative steps, dark and bright
     small.texels().sum().backward()
-    grad = small.raw.grad.view(-1)
-    assert grad[vals > 5].min() > 0.99
-    assert grad[vals < 1e-3].min() > 5e-5
+    torch.testing.assert_close(small.log_radiance.grad, small.texels().detach())
     with pytest.raises(ValueError):
         small.set_texels(torch.full((6, 4, 4, 1), float("nan")))
     with pytest.raises(ValueError):
         small.set_texels(torch.ones(6, 4, 4, 3))
     with pytest.raises(ValueError):
         EnvMap(init_value=0.0)
+    # zero and absurd radiance stay finite: a floor and a ceiling in log space
+    small.set_texels(torch.tensor([0.0, 1e30]).repeat(48).view(6, 4, 4, 1))
+    assert torch.isfinite(small.texels()).all() and float(small.texels().min()) > 0
 
 
-def test_softplus_inverse_is_an_inverse():
-    y = torch.tensor([1e-6, 1e-3, 0.3, 1.0, 19.0, 21.0, 1e4], dtype=F64)
-    torch.testing.assert_close(torch.nn.functional.softplus(softplus_inverse(y)), y)
+def test_a_softplus_checkpoint_loads_as_the_same_radiance():
+    """Env maps saved before log radiance stored ``raw`` with radiance = softplus(raw)."""
+    g = torch.Generator().manual_seed(5)
+    raw = torch.randn(6, 4, 4, 3, generator=g) * 3.0
+    env = EnvMap(resolution=4)
+    env.load_state_dict({"raw": raw})
+    torch.testing.assert_close(env.texels(), torch.nn.functional.softplus(raw), rtol=1e-5, atol=0)
+    from core.model.trained import envmap_from_state
+
+    again = envmap_from_state({"raw": raw}, "cpu")
+    assert again is not None and again.resolution == 4
+    torch.testing.assert_close(again.texels(), env.texels())
+    assert envmap_from_state({"something": raw}, "cpu") is None
 
 
 def test_training_step_moves_only_the_looked_up_texels():

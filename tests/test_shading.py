@@ -186,13 +186,13 @@ def test_gradients_are_finite_where_coverage_is_zero():
         t.requires_grad_(True)
     env = EnvMap(resolution=8).double()
     with torch.no_grad():
-        env.raw.normal_(generator=torch.Generator().manual_seed(1))
+        env.log_radiance.normal_(generator=torch.Generator().manual_seed(1))
     res = deferred_shade(gb, env, torch.ones(3, dtype=F64))
     assert torch.isfinite(res.final).all()
     (res.final * torch.rand_like(res.final)).sum().backward()
-    for t in (gb.normal, gb.base, gb.w_r, gb.alpha, env.raw):
+    for t in (gb.normal, gb.base, gb.w_r, gb.alpha, env.log_radiance):
         assert torch.isfinite(t.grad).all()
-    assert env.raw.grad.abs().sum() > 0
+    assert env.log_radiance.grad.abs().sum() > 0
     assert gb.normal.grad.abs().sum() > 0
 
 
@@ -211,7 +211,7 @@ def test_disabled_shading_is_base_over_background_and_never_touches_the_envmap()
     env = EnvMap(resolution=4).double()
     gb.base.requires_grad_(True)
     deferred_shade(gb, env, bg, enabled=False).final.sum().backward()
-    assert env.raw.grad is None
+    assert env.log_radiance.grad is None
     with pytest.raises(ValueError, match="no environment map"):
         deferred_shade(gb, None, bg)
 
@@ -298,4 +298,4 @@ def test_env_map_is_learned_from_mirror_sphere_views():
         loss.backward()
         opt.step()
     assert loss_fn().item() < 0.25 * first  # measured 0.13
-    assert torch.isfinite(env.raw).all()
+    assert torch.isfinite(env.log_radiance).all()

@@ -96,6 +96,6 @@ def test_gradients_keep_the_differentiable_path():
     assert not can_shade_compiled(tensors, env)
     out = deferred_shade(gb, env, torch.zeros(3))
     out.final.sum().backward()
-    assert env.raw.grad is not None and float(env.raw.grad.abs().sum()) > 0
+    assert env.log_radiance.grad is not None and float(env.log_radiance.grad.abs().sum()) > 0
     with torch.no_grad():
         assert can_shade_compiled(tensors, env)

@@ -198,7 +198,7 @@ def compare_envmaps(envmap: EnvMap, truth: TrueEnvmap, dirs: Tensor) -> dict[str
     (``meta.json:envmap.scale``), else 1."""
     if len(dirs) == 0:
         return {"error": "no reflected directions (no covered pixels)"}
-    learned = envmap.sample(dirs.to(envmap.raw)).double().cpu()
+    learned = envmap.sample(dirs.to(envmap.log_radiance)).double().cpu()
     true = truth.sample(dirs).double().cpu()
     k = truth.scale if truth.scale is not None else 1.0
     s = exposure_fit(learned, true, k)
@@ -283,7 +283,7 @@ def save_envmap_comparison(
     width = 2 * height
     grid = ll.pixel_directions(height, width)
     k = truth.scale if truth.scale is not None else 1.0
-    learned = envmap.sample(grid.to(envmap.raw)).cpu() * (k / exposure)
+    learned = envmap.sample(grid.to(envmap.log_radiance)).cpu() * (k / exposure)
     true = truth.sample(grid) * k
     row, col = ll.to_pixel(dirs.float(), height, width)
     seen = torch.zeros(height, width, dtype=torch.bool)

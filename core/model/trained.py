@@ -46,10 +46,12 @@ def eval_background(cfg: TrainConfig, device: torch.device | str) -> Tensor:
 
 def envmap_from_state(state: Any, device: torch.device | str) -> EnvMap | None:
     """The env map stored in a checkpoint (``EnvMap.state_dict()``), or None."""
-    if not isinstance(state, dict) or "raw" not in state:
+    if not isinstance(state, dict):
         return None
-    raw = state["raw"]
-    envmap = EnvMap(raw.shape[1], raw.shape[-1]).to(device)
+    texels = state.get("log_radiance", state.get("raw"))  # "raw": before log radiance
+    if texels is None:
+        return None
+    envmap = EnvMap(texels.shape[1], texels.shape[-1]).to(device)
     envmap.load_state_dict(state)
     return envmap
 

@@ -59,7 +59,7 @@ def _assert_clean(t: Trainer, out: Path) -> None:
     for name, o in t.optimizers.items():
         assert _finite_tree(o.state_dict()["state"]), f"optimizer {name} state holds NaN/Inf"
     if t.envmap is not None:
-        assert all_finite(t.envmap.raw)
+        assert all_finite(t.envmap.log_radiance)
     ck = load_checkpoint(out / "checkpoint.pt")
     assert all(all_finite(p) for p in ck.gaussians.params.values())
     assert _finite_tree(ck.extra["optimizers"])
