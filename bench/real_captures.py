@@ -14,6 +14,8 @@ on every held-out view (the run's scene's test split, at the run's resolution):
   held-out mask (> 0.5): how well the model's silhouette matches the object's.
 
 Without masks only ``psnr`` / ``ssim`` are given. Prints one Markdown row per run.
+``--figure OUT.png``: the first run's first two held-out views side by side: the
+photo (composited with its mask), the render, its normals and its alpha.
 """
 
 from __future__ import annotations
@@ -48,6 +50,23 @@ def ssim_map(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
     c1, c2 = 0.01**2, 0.03**2
     m = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
     return m[0].mean(0)
+
+
+@torch.no_grad()
+def figure(run: Path, path: Path, scene_dir: Path | None = None, views: int = 2) -> Path:
+    """Rows of photo | render | normal | alpha for the first held-out views (sRGB PNG)."""
+    from core.scene.imageio import write_image
+
+    model, scene = open_run(run, scene_dir)
+    bg = model.background
+    rows = []
+    for v in (scene.test or scene.train)[:views]:
+        frame = model.render(v.camera, ("final", "normal", "alpha"), background=bg)
+        tiles = [v.composited(bg.cpu())] + [
+            frame.image(c).cpu()[..., :3] for c in ("final", "normal", "alpha")
+        ]
+        rows.append(torch.cat(tiles, dim=1))
+    return write_image(path, torch.cat(rows, dim=0))
 
 
 @torch.no_grad()
@@ -95,6 +114,7 @@ def main() -> None:
     ap.add_argument("runs", nargs="+", type=Path)
     ap.add_argument("--scene", type=Path, help="scene folder (default: the run's own)")
     ap.add_argument("--json", type=Path, help="write every figure, per view too, here")
+    ap.add_argument("--figure", type=Path, help="PNG of the first held-out views")
     a = ap.parse_args()
     results = []
     print("| run | views | res | PSNR | SSIM | PSNR in mask | SSIM in mask | alpha IoU |")
@@ -114,6 +134,8 @@ def main() -> None:
         )
     if a.json:
         a.json.write_text(json.dumps(results, indent=2))
+    if a.figure:
+        print(f"wrote {figure(a.runs[0], a.figure, a.scene)}")
 
 
 if __name__ == "__main__":
