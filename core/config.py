@@ -19,6 +19,9 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from core.errors import GlintError
 
 REFERENCE_ITERATIONS = 30_000
+# The variance of a uniform distribution over one pixel: a Gaussian stand-in for the box
+# filter a camera pixel applies (Mip-Splatting's 2D filter is 0.1 for the same reason).
+PIXEL_BOX_VARIANCE = 1.0 / 12.0
 # Upper bounds of the config's numbers: far beyond any sensible run, well inside what
 # the engine (int64 counters, float32 tensors, a database integer) can hold.
 MAX_ITERATIONS = 10_000_000
@@ -201,6 +204,15 @@ class TrainConfig(_Strict):
         description="scale opacity by the 2D low-pass compensation (Mip-Splatting; gsplat's "
         "'antialiased' mode) so edge-on planar Gaussians fade instead of blurring silhouettes",
     )
+    lowpass_2d: float = Field(
+        PIXEL_BOX_VARIANCE,
+        ge=0,
+        le=10,
+        description="variance (px²) of the screen-space low-pass filter added to every "
+        "splat's 2D covariance: 1/12, a pixel's box filter, which is what a photo's pixel "
+        "integrates (3DGS uses 0.3; wider filters blur silhouettes outwards and training "
+        "then shrinks the surface to match them)",
+    )
     envmap_resolution: int | Literal["auto"] = Field(
         "auto",
         description="cube face size in texels; auto: the paper's 128 at its focal length "
@@ -318,7 +330,7 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> TrainConfi
 
 
 # Fields added after runs were first saved, with the value those runs trained with.
-LEGACY_DEFAULTS: dict[str, Any] = {"antialiased": False}
+LEGACY_DEFAULTS: dict[str, Any] = {"antialiased": False, "lowpass_2d": 0.3}
 
 
 def saved_config(data: dict[str, Any], source: str = "saved config") -> TrainConfig:

@@ -45,6 +45,7 @@ class Phase:
     planar_depth: bool
     scale_loss: bool
     antialiased: bool = True
+    lowpass: float = 0.3  # px² added to each splat's 2D covariance (TrainConfig.lowpass_2d)
 
 
 @dataclass(frozen=True)
@@ -124,4 +125,5 @@ def phase_at(
         planar_depth=ab.planar_depth,
         scale_loss=ab.planar,
         antialiased=cfg.antialiased,
+        lowpass=cfg.lowpass_2d,
     )

@@ -230,12 +230,12 @@ class TrainedModel:
             gb, _ = render_gbuffer_tensors(
                 st["means"], None, None, st["opacities"], colors, st["normals"], st["w_r"],
                 camera, covariances=st["covariances"], backend=self.backend,
-                antialiased=phase.antialiased,
+                antialiased=phase.antialiased, lowpass=phase.lowpass,
             )  # fmt: skip
         else:
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
-                antialiased=phase.antialiased,
+                antialiased=phase.antialiased, lowpass=phase.lowpass,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

@@ -183,13 +183,15 @@ def render_gbuffer_tensors(
     near: float | None = None,
     absgrad: bool = False,
     antialiased: bool = False,
+    lowpass: float = 0.3,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
 
     ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
     are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
-    millimetres, metres or kilometres renders the same images.
+    millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
+    screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
     """
     feats = gbuffer_features(means, colors, normals_world, w_r, camera)
     if near is None:
@@ -206,6 +208,7 @@ def render_gbuffer_tensors(
         near=near,
         absgrad=absgrad,
         antialiased=antialiased,
+        eps2d=lowpass,
     )
     f = res.features
     gb = GBuffer(

@@ -225,10 +225,20 @@ def probe_view_dependence(
     for i, j in pairs:
         vi, vj = views[i], views[j]
         gi, _ = render_gbuffer(
-            gaussians, vi.camera, sh_degree=0, backend=cfg.backend, antialiased=cfg.antialiased
+            gaussians,
+            vi.camera,
+            sh_degree=0,
+            backend=cfg.backend,
+            antialiased=cfg.antialiased,
+            lowpass=cfg.lowpass_2d,
         )
         gj, _ = render_gbuffer(
-            gaussians, vj.camera, sh_degree=0, backend=cfg.backend, antialiased=cfg.antialiased
+            gaussians,
+            vj.camera,
+            sh_degree=0,
+            backend=cfg.backend,
+            antialiased=cfg.antialiased,
+            lowpass=cfg.lowpass_2d,
         )
         ok = gi.depth_valid & (gi.alpha > PROBE_MIN_ALPHA)
         if vi.mask is not None:

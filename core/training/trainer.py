@@ -114,7 +114,7 @@ def forward_view(
     (with gradients; readers of a trained model use ``TrainedModel.render``)."""
     gb, res = render_gbuffer(
         gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
-        antialiased=phase.antialiased,
+        antialiased=phase.antialiased, lowpass=phase.lowpass,
     )  # fmt: skip
     shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
     return gb, shade, res
@@ -371,7 +371,7 @@ class Trainer:
             nview = self._targets[nb]
             gb_n, _ = render_gbuffer(
                 self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
-                antialiased=phase.antialiased,
+                antialiased=phase.antialiased, lowpass=phase.lowpass,
             )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
             if nview.mask is not None:
