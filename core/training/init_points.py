@@ -31,6 +31,25 @@ def _inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
     return (seen > 0) & (inside >= min_fraction * seen)
 
 
+def _refine_entry(
+    origins: Tensor,
+    dirs: Tensor,
+    lo: Tensor,
+    hi: Tensor,
+    scene: Scene,
+    min_fraction: float,
+    bisections: int,
+) -> Tensor:
+    """Ray parameters (M,) of the hull entry, by bisection between ``lo`` (outside the
+    hull, or equal to ``hi`` for a ray that starts inside) and ``hi`` (inside)."""
+    for _ in range(bisections):
+        mid = 0.5 * (lo + hi)
+        inside = _inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
+        hi = torch.where(inside, mid, hi)
+        lo = torch.where(inside, lo, mid)
+    return hi
+
+
 @torch.no_grad()
 def visual_hull_points(
     scene: Scene,
@@ -38,9 +57,16 @@ def visual_hull_points(
     *,
     samples_per_ray: int = 64,
     min_fraction: float = 0.9,
+    bisections: int = 8,
     seed: int = 0,
 ) -> tuple[Tensor, Tensor] | None:
     """Up to ``n`` points (float64) with linear colours on the visual-hull surface.
+
+    Each ray is marched in ``samples_per_ray`` steps through the bounding sphere, and
+    its entry into the hull is then located by ``bisections`` halvings of the step it
+    fell in. Why: the first inside sample lies up to a step (radius/32) past the entry,
+    half a step on average; on the dev scenes that started every point ~0.03 (1.3 px)
+    inside the object, and training never moved the surface back out.
 
     Returns None when the scene has no masks or no ray finds the hull.
     """
@@ -49,7 +75,7 @@ def visual_hull_points(
         return None
     gen = torch.Generator().manual_seed(seed)
     per_view = max(1, (2 * n) // len(views))
-    pts, cols = [], []
+    origins, dirs, t_out, t_in, cols = [], [], [], [], []
     c, r = scene.center.to(torch.float64), float(scene.radius)
     for v in views:
         idx = (v.mask.reshape(-1) > 0.5).nonzero()[:, 0]
@@ -79,12 +105,17 @@ def visual_hull_points(
         sel = found.nonzero()[:, 0]
         if sel.numel() == 0:
             continue
-        pts.append(P[sel, first[sel]])
-        rgb = v.image.reshape(-1, 3)[pick[sel]]
-        cols.append(rgb.double())
-    if not pts:
+        rows, k = sel, first[sel]
+        origins.append(o.expand(sel.numel(), 3))
+        dirs.append(d[sel])
+        t_in.append(t[rows, k])
+        t_out.append(torch.where(k > 0, t[rows, (k - 1).clamp_min(0)], t[rows, k]))
+        cols.append(v.image.reshape(-1, 3)[pick[sel]].double())
+    if not dirs:
         return None
-    P = torch.cat(pts)
+    O, D = torch.cat(origins), torch.cat(dirs)
+    t_hit = _refine_entry(O, D, torch.cat(t_out), torch.cat(t_in), scene, min_fraction, bisections)
+    P = O + D * t_hit[:, None]
     C = torch.cat(cols)
     if P.shape[0] > n:
         keep = torch.randperm(P.shape[0], generator=gen)[:n]
