@@ -81,6 +81,12 @@ def test_the_true_map_scores_high_at_any_exposure_and_a_grey_one_low(mirror) -> 
     assert right["log_correlation"] > 0.98
     assert right["exposure"] == pytest.approx(0.5, rel=0.05)
     assert right["seen_fraction"] > 0.75
+    # a tinted map (a coloured metal's reflectance) is only right after per-channel gains
+    tint = torch.tensor([1.0, 0.75, 0.35])
+    gold = compare_envmaps(envmap_of(lambda d: default_env(d) * tint), truth, dirs)
+    assert gold["psnr"] < right["psnr"] - 5
+    assert gold["psnr_channel_gains"] > 30
+    assert gold["channel_gains"] == pytest.approx(tint.tolist(), rel=0.05)
     grey = compare_envmaps(EnvMap(RES, init_value=0.5), truth, dirs)
     assert grey["psnr"] < right["psnr"] - 12
     # a constant map has no luminance variation to correlate with

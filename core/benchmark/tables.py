@@ -34,6 +34,7 @@ COLUMNS: tuple[tuple[str, str, int, int], ...] = (
     ("normal_error_deg", "normal err (°) ↓", 2, -1),
     ("depth_abs_error", "depth err ↓", 4, -1),
     ("envmap_psnr", "env map PSNR ↑", 2, 1),
+    ("envmap_psnr_channel_gains", "env map PSNR, RGB gains ↑", 2, 1),
     ("envmap_log_correlation", "env map corr ↑", 3, 1),
     ("specular_share", "specular share", 3, 0),
     ("n_gaussians", "#Gaussians", 0, 0),
@@ -142,6 +143,7 @@ TIME_COLUMNS: tuple[tuple[str, str, int, int], ...] = (
     ("normal_error_deg", "normal err (°) ↓", 2, -1),
     ("depth_abs_error", "depth err ↓", 4, -1),
     ("envmap_psnr", "env map PSNR ↑", 2, 1),
+    ("envmap_psnr_channel_gains", "env map PSNR, RGB gains ↑", 2, 1),
     ("envmap_log_correlation", "env map corr ↑", 3, 1),
     ("specular_share", "specular share", 3, 0),
 )

@@ -139,6 +139,10 @@ def seen_fraction(dirs: Tensor) -> float:
     return float((w * hit).sum() / w.sum())
 
 
+def _psnr(a: Tensor, b: Tensor) -> float:
+    return 10.0 * math.log10(1.0 / max(float(((a - b) ** 2).mean()), 1e-20))
+
+
 def _display(x: Tensor) -> Tensor:
     return linear_to_srgb(x.clamp(0.0, 1.0))
 
@@ -194,19 +198,24 @@ def log_luminance_correlation(learned: Tensor, true: Tensor) -> float:
 def compare_envmaps(envmap: EnvMap, truth: TrueEnvmap, dirs: Tensor) -> dict[str, Any]:
     """PSNR (display space at the photos' exposure, after the exposure fit) and
     log-luminance correlation of the learned map against the true one over ``dirs``;
-    the fitted factor and coverage. The photos' exposure is the one the scene records
-    (``meta.json:envmap.scale``), else 1."""
+    the fitted factor and coverage; and the PSNR after one factor per colour channel. The
+    photos' exposure is the one the scene records (``meta.json:envmap.scale``), else 1."""
     if len(dirs) == 0:
         return {"error": "no reflected directions (no covered pixels)"}
     learned = envmap.sample(dirs.to(envmap.log_radiance)).double().cpu()
     true = truth.sample(dirs).double().cpu()
     k = truth.scale if truth.scale is not None else 1.0
     s = exposure_fit(learned, true, k)
-    mse = float(((_display(learned * (k / s)) - _display(true * k)) ** 2).mean())
+    # per channel too: Eq. 9's w_r is one number, so a coloured metal's tint (gold's
+    # Fresnel reflectance) can only live in the map; these gains take it out
+    gains = [exposure_fit(learned[:, c], true[:, c], k) for c in range(learned.shape[1])]
+    tinted = learned * (k / torch.tensor(gains, dtype=learned.dtype))
     out = {
-        "psnr": 10.0 * math.log10(1.0 / max(mse, 1e-20)),
+        "psnr": _psnr(_display(learned * (k / s)), _display(true * k)),
+        "psnr_channel_gains": _psnr(_display(tinted), _display(true * k)),
         "log_correlation": log_luminance_correlation(learned, true),
         "exposure": s,
+        "channel_gains": gains,
         "seen_fraction": seen_fraction(dirs),
         "directions": len(dirs),
     }

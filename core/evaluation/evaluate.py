@@ -251,6 +251,7 @@ def summarize(ev: dict[str, Any]) -> dict[str, Any]:
         "n_gaussians": ev.get("n_gaussians"),
         "envmap_psnr": env.get("psnr"),
         "envmap_log_correlation": env.get("log_correlation"),
+        "envmap_psnr_channel_gains": env.get("psnr_channel_gains"),
         "specular_share": ev.get("specular_share"),
     }
 
