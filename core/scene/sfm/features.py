@@ -4,8 +4,8 @@ Images that share size and EXIF camera (make, model, focal length) share one
 camera: one set of intrinsics estimated from all of them, which is what a photo
 series from one camera at one zoom has, and far better constrained than one camera
 per image (goldcape: one focal of 842.5–843.2 px against the LLFF 843.1, where one
-camera per photo scatters them over 829–865 px). Feature masks, when asked for, keep keypoints off the
-object: COLMAP drops keypoints where a mask image is black.
+camera per photo scatters them over 829–865 px). Feature masks, when asked for,
+keep keypoints off the object: COLMAP drops keypoints where a mask image is black.
 """
 
 from __future__ import annotations
