@@ -19,7 +19,7 @@ from core.cli import main
 from core.errors import SceneError
 from core.scene.formats import load_scene
 from core.scene.imageio import write_image
-from core.scene.sfm import SfmError, SfmOptions, run_sfm
+from core.scene.sfm import SfmCancelledError, SfmError, SfmOptions, run_sfm
 from core.scene.sfm.align import pose_errors, umeyama
 from core.scene.sfm.matching import choose_strategy
 from core.scene.sfm.pairs import (
@@ -170,6 +170,20 @@ def test_bad_inputs_name_the_file(tmp_path: Path) -> None:
     with pytest.raises(SfmError, match="is not empty"):
         run_sfm(photos, tmp_path / "full")
     assert (tmp_path / "full" / "keep.txt").read_text() == "mine"
+
+
+def test_cancel_leaves_nothing(tmp_path: Path) -> None:
+    """``should_stop`` turning true mid-run ends it with SfmCancelledError, no scene."""
+    unrelated_photos(tmp_path / "photos", 20)
+    events: list[dict] = []
+    with pytest.raises(SfmCancelledError, match="cancelled during features"):
+        run_sfm(
+            tmp_path / "photos",
+            tmp_path / "scene",
+            on_event=events.append,
+            should_stop=lambda: any(e["type"] == "sfm" for e in events),
+        )
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
 
 
 def test_cli_reports_the_error(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
