@@ -74,7 +74,10 @@ def _check_out(out: Path, overwrite: bool) -> None:
     if out.exists() and not out.is_dir():
         raise SfmError(f"output {out} exists and is not a folder")
     if out.is_dir() and any(out.iterdir()) and not overwrite:
-        raise SfmError(f"output folder {out} is not empty (pass overwrite to replace it)")
+        raise SfmError(
+            f"output folder {out} is not empty (glint sfm --overwrite, or "
+            "SfmOptions(overwrite=True), replaces it)"
+        )
 
 
 def _stage_inputs(images: list[InputImage], folder: Path) -> dict[str, InputImage]:

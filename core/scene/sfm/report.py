@@ -69,7 +69,8 @@ def report_text(r: dict[str, Any]) -> str:
     lines += [f"warning: {w}" for w in r.get("warnings", [])]
     s = r.get("seconds", {})
     parts = ", ".join(f"{k} {v:.1f} s" for k, v in s.items() if k != "total")
-    lines.append(f"time {s.get('total', 0):.1f} s ({parts}); peak memory {r['peak_rss_mb']:.0f} MB")
+    rss = r["peak_rss_mb"]
+    lines.append(f"time {s.get('total', 0):.1f} s ({parts}); process peak memory {rss:.0f} MB")
     return "\n".join(lines) + "\n"
 
 
