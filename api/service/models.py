@@ -158,6 +158,9 @@ class Job(Base):
     loss: Mapped[float | None] = mapped_column(Float, default=None)
     metrics: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     plan: Mapped[dict[str, Any] | None] = mapped_column(default=None)
+    # jobs on an images-only scene: {"options": SfmConfig, "result": None until the sfm
+    # phase's scene is whole in the store, then its summary} (api.service.sfm_phase)
+    sfm: Mapped[dict[str, Any] | None] = mapped_column(default=None)
     elapsed_s: Mapped[float | None] = mapped_column(Float, default=None)
     eta_s: Mapped[float | None] = mapped_column(Float, default=None)
     error: Mapped[str | None] = mapped_column(Text, default=None)

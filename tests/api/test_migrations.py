@@ -36,7 +36,7 @@ def test_upgrade_matches_models_and_downgrades(url: str) -> None:
         with db.engine.connect() as conn:
             ctx = MigrationContext.configure(conn, opts={"compare_type": True})
             assert compare_metadata(ctx, Base.metadata) == []
-            assert ctx.get_current_revision() == "0005"
+            assert ctx.get_current_revision() == "0006"
         with db.engine.connect() as conn:
             cfg = alembic_config(url)
             cfg.attributes["connection"] = conn

@@ -11,7 +11,14 @@ from api.service.store.base import (
     is_staging,
 )
 from api.service.store.factory import CHECK_TIMEOUT_S, make_store
-from api.service.store.keys import check_key, job_key, job_run_key, scene_files_key, scene_key
+from api.service.store.keys import (
+    check_key,
+    job_key,
+    job_run_key,
+    job_scene_key,
+    scene_files_key,
+    scene_key,
+)
 from api.service.store.local import LocalStore
 from api.service.store.probe import StoreProbe
 from api.service.store.retry import retrying
@@ -30,6 +37,7 @@ __all__ = [
     "is_staging",
     "job_key",
     "job_run_key",
+    "job_scene_key",
     "make_store",
     "retrying",
     "scene_files_key",

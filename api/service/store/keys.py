@@ -4,6 +4,7 @@
 
     scenes/{scene_id}/files/...   uploaded scene files (the scene folder)
     jobs/{job_id}/run/...         the run folder train_scene writes into
+    jobs/{job_id}/scene/...       the COLMAP scene the job's sfm phase made (images-only scenes)
     tmp/...                       staging (directory store only)
 """
 
@@ -22,6 +23,11 @@ def scene_key(scene_id: str) -> str:
 
 def job_run_key(job_id: str) -> str:
     return f"jobs/{job_id}/run"
+
+
+def job_scene_key(job_id: str) -> str:
+    """The scene a job's ``sfm`` phase recovered from plain photos (deleted with the job)."""
+    return f"jobs/{job_id}/scene"
 
 
 def job_key(job_id: str) -> str:
