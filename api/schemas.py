@@ -96,12 +96,19 @@ class ValidationReport(BaseModel):
     test_views: int
     resolution: list[int] = Field(description="[width, height] of the first view")
     resolutions: list[list[int]] = Field(description="every distinct [width, height]")
-    intrinsics: Intrinsics = Field(description="of the first view, in pixels")
+    intrinsics: Intrinsics | None = Field(
+        description="of the first view, in pixels; null for photos without poses (needs_sfm)"
+    )
     masks: bool = Field(description="views carry alpha or mask files")
     points: int = Field(description="sparse points shipped with the scene (COLMAP)")
-    center: list[float]
-    radius: float
+    center: list[float] | None = Field(description="null until SfM for photos without poses")
+    radius: float | None = Field(description="null until SfM for photos without poses")
     warnings: list[str]
+    needs_sfm: bool = Field(
+        False,
+        description="plain photos without poses (format 'images'): every training job on "
+        "the scene starts with an 'sfm' phase that recovers the cameras",
+    )
 
 
 class SceneFileOut(BaseModel):
@@ -133,11 +140,45 @@ class UploadResult(BaseModel):
 # --- jobs ----------------------------------------------------------------------------
 
 
+class SfmConfig(BaseModel):
+    """Structure-from-motion options of a job on an images-only scene (the defaults are
+    ``core.scene.sfm.SfmOptions``'s; tests/api/test_sfm_jobs.py holds them equal)."""
+
+    model_config = ConfigDict(extra="forbid")
+    matching: Literal["auto", "exhaustive", "retrieval"] = Field(
+        "auto",
+        description="'auto': every pair up to 40 photos, each photo with its most similar "
+        "ones above; or force one",
+    )
+    mapper: Literal["incremental", "global"] = Field(
+        "incremental", description="COLMAP's incremental mapper, or GLOMAP's global one"
+    )
+    feature_masks: bool = Field(
+        False,
+        description="keep SIFT features off the object (needs masks; measure it first: on "
+        "the Gold Cape capture it registered 2 of 119 photos instead of 119)",
+    )
+    min_registered: float = Field(
+        0.8,
+        ge=0,
+        le=1,
+        allow_inf_nan=False,
+        description="fraction of the photos that must register, else the job fails naming "
+        "the ones that did not",
+    )
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of the mapper")
+
+
 class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     scene_id: str = Field(min_length=1, max_length=40)
     config: TrainConfig = Field(
         default_factory=TrainConfig, description="training config; omitted fields default"
+    )
+    sfm: SfmConfig | None = Field(
+        None,
+        description="structure-from-motion options; only for scenes of photos without poses "
+        "(report.needs_sfm), which get the defaults when this is omitted",
     )
 
 
@@ -209,8 +250,14 @@ class JobOut(BaseModel):
     config: dict[str, Any]
     plan: dict[str, Any] | None = Field(description="what parts of the method the scene needs")
     stage: dict[str, Any] | None = Field(
-        description="the step after training that runs now, e.g. {'name': 'mesh', 'step': "
-        "'integrate', 'done': 3, 'total': 24}"
+        description="the step outside the training loop that runs now, e.g. {'name': 'mesh', "
+        "'step': 'integrate', 'done': 3, 'total': 24} or {'name': 'sfm', 'step': 'matching', "
+        "'done': 40, 'total': 66, 'elapsed_s': 12.5}"
+    )
+    sfm: dict[str, Any] | None = Field(
+        description="jobs on photos without poses: {'options': {...}, 'result': null until "
+        "the sfm phase recovered the cameras, then {'images', 'registered', 'unregistered', "
+        "...}}; null for scenes with poses"
     )
     created_at: datetime
     updated_at: datetime

@@ -74,6 +74,7 @@ def job_out(job: Job) -> JobOut:
         config=job.config,
         plan=job.plan,
         stage=job.stage,
+        sfm=job.sfm,
         created_at=job.created_at,
         updated_at=job.updated_at,
         started_at=job.started_at,

@@ -37,11 +37,11 @@ from api.deps import (
     StoreDep,
     StoreUp,
 )
-from api.problems import ApiError, not_found, responses
+from api.problems import ApiError, FieldError, not_found, responses
 from api.routers.scenes import owned_scene
-from api.schemas import JobCreate, JobKindName, JobOut, JobStateName, Page
+from api.schemas import JobCreate, JobKindName, JobOut, JobStateName, Page, SfmConfig
 from api.service.db import Database
-from api.service.models import Job, JobState, SceneState, new_id
+from api.service.models import Job, JobState, Scene, SceneState, new_id
 from api.service.queue import JobQueue
 from api.service.store import job_key
 from api.service.sweeper import discard
@@ -73,6 +73,32 @@ def _etag(job: Job) -> str:
     return f'W/"{job.id}-{job.version}"'
 
 
+def sfm_record(scene: Scene, options: SfmConfig | None) -> dict[str, Any] | None:
+    """The job's ``sfm`` column: options for a scene of photos without poses (None for a
+    scene with poses); options that cannot apply answer 422 naming the field."""
+    report = scene.report or {}
+    if not report.get("needs_sfm"):
+        if options is not None:
+            raise _sfm_refused(
+                "body.sfm",
+                f"scene '{scene.id}' has poses (format {scene.format}); structure-from-motion "
+                "options apply only to scenes of photos without poses",
+            )
+        return None
+    options = options or SfmConfig()
+    if options.feature_masks and not report.get("masks"):
+        raise _sfm_refused(
+            "body.sfm.feature_masks", f"feature masks need masks; scene '{scene.id}' has none"
+        )
+    return {"options": options.model_dump(mode="json"), "result": None}
+
+
+def _sfm_refused(field: str, message: str) -> ApiError:
+    return ApiError(
+        422, "validation-error", message, errors=[FieldError(field=field, message=message)]
+    )
+
+
 def enqueue(queue: JobQueue, job_id: str) -> None:
     try:
         queue.enqueue(job_id)
@@ -93,6 +119,9 @@ def enqueue(queue: JobQueue, job_id: str) -> None:
     responses=responses(400, *AUTH, 409, 415, 422, 503),
     dependencies=[JsonBody, StoreUp],
     summary="Create a training job on a ready scene",
+    description="On a scene of photos without poses (`report.needs_sfm`) the job starts with "
+    "an `sfm` phase that recovers the cameras; `sfm` holds its options (refused, 422, on a "
+    "scene with poses).",
 )
 def create_job(
     body: JobCreate, principal: PrincipalDep, session: SessionDep, queue: QueueDep
@@ -111,6 +140,7 @@ def create_job(
         scene_id=scene.id,
         config=cfg.model_dump(mode="json"),
         total_iterations=cfg.iterations,
+        sfm=sfm_record(scene, body.sfm),
     )
     session.add(job)
     session.commit()  # the row exists before any runner can be handed its id

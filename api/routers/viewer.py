@@ -22,12 +22,8 @@ from api.deps import SCOPE_EXTRA, PrincipalDep, SessionDep
 from api.problems import responses
 from api.routers.jobs import AUTH, JobId, owned_job
 from api.service.models import Job
-from api.service.store import (
-    ArtifactStore,
-    StoreUnavailableError,
-    job_run_key,
-    scene_files_key,
-)
+from api.service.sfm_phase import scene_key
+from api.service.store import ArtifactStore, StoreUnavailableError, job_run_key
 from api.strict_json import StrictJsonRoute
 from api.views import job_out
 from viewer_web import JobView, ViewerService
@@ -76,28 +72,34 @@ def make_lookup(app: FastAPI) -> Callable[[str, str], JobView | None]:
     The viewer reads files: with a bucket, the job's checkpoint is fetched into this
     host's cache whenever it changed (one HEAD per look while unchanged; the viewer looks
     about once a second and reloads the model when the copy is newer), and the scene
-    (frozen once its jobs exist) once per process. A store that is down keeps the last
+    (frozen once its jobs exist; for photos without poses, the job's SfM scene once its
+    sfm phase recorded it) once per process. A store that is down keeps the last
     copies."""
     scenes: dict[str, Path | None] = {}
 
-    def scene_folder(store: ArtifactStore, scene_id: str) -> Path | None:
-        if scene_id not in scenes:
-            folder = store.local(scene_files_key(scene_id))
-            scenes[scene_id] = folder if folder.is_dir() and any(folder.iterdir()) else None
-        return scenes[scene_id]
+    def scene_folder(store: ArtifactStore, key: str) -> Path | None:
+        if key not in scenes:
+            folder = store.local(key)
+            scenes[key] = folder if folder.is_dir() and any(folder.iterdir()) else None
+        return scenes[key]
 
     def lookup(job_id: str, owner: str) -> JobView | None:
         with app.state.database.read() as s:
             job = s.scalar(select(Job).where(Job.id == job_id, Job.owner == owner))
             if job is None:
                 return None
-            status, scene_id = viewer_status(job), job.scene_id
+            status, trained, sfm = viewer_status(job), job.id, job.sfm
+            if job.parent_id is not None:  # a mesh job: the scene its parent trained on
+                trained = job.parent_id
+                sfm = s.scalar(select(Job.sfm).where(Job.id == trained))
+            key = scene_key(trained, job.scene_id, sfm)
+            has_scene = sfm is None or bool(sfm.get("result"))  # SfM done, scene stored
         store: ArtifactStore = app.state.store
         run_key = job_run_key(job_id)
         scene_dir: Path | None = None
         try:
             store.local_file(f"{run_key}/{CHECKPOINT_NAME}")
-            scene_dir = scene_folder(store, scene_id)
+            scene_dir = scene_folder(store, key) if has_scene else None
         except StoreUnavailableError as exc:
             log.warning("viewer: job %s: %s; showing what this host has", job_id, exc)
         return JobView(store.local_path(run_key), scene_dir, status)

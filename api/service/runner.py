@@ -19,6 +19,8 @@
   checkpoint-and-return, but the job goes back to ``queued`` for the next runner.
 * **Resume**: the run folder lives in the store (``jobs/{id}/run``); ``train_scene``
   always resumes from its checkpoint, so a re-queued job continues where it stopped.
+* **Photos without poses**: a job whose row carries ``sfm`` first recovers the cameras
+  into ``jobs/{id}/scene`` (:mod:`api.service.sfm_phase`; done once, recorded in the row).
 * **Store**: the runner trains in a local copy of the run folder (the folder itself with
   a directory store; a copy in the cache with a bucket, fetched from it first, so a job
   resumed on another host finds its checkpoint) and sends it back at every checkpoint and
@@ -49,11 +51,13 @@ from sqlalchemy import Update, delete, func, select, update
 from api.service.db import Database, database_for
 from api.service.models import Artifact, Job, JobKind, JobState
 from api.service.settings import Settings
+from api.service.sfm_phase import recover_scene, scene_key
 from api.service.store import (
     ArtifactStore,
     StoreUnavailableError,
     is_staging,
     job_run_key,
+    job_scene_key,
     make_store,
     retrying,
     scene_files_key,
@@ -207,6 +211,14 @@ class _JobReporter:
             self.flush()
         if kind in ("checkpoint", "eval") and self.sync is not None:
             self.sync()  # a new checkpoint or metrics row: into the store, for resumes/readers
+
+    def update(self, values: dict[str, Any], *, now: bool = False) -> None:
+        """Queue column values for the job row: written now, or once the interval passed
+        (phases outside the trainer report through this: :mod:`api.service.sfm_phase`)."""
+        with self.lock:
+            self.pending.update(values)
+        if now or time.monotonic() - self.last_write >= self.interval:
+            self.flush()
 
     def flush(self) -> None:
         """Write pending progress now (a failed write is logged and retried next time)."""
@@ -494,7 +506,10 @@ def run_job(
         job = s.get(Job, job_id)
         assert job is not None
         config, scene_id = dict(job.config), job.scene_id
-        kind, parent_id = job.kind, job.parent_id
+        kind, parent_id, sfm = job.kind, job.parent_id, job.sfm
+        if parent_id is not None:  # a mesh job reads the scene its parent trained on
+            parent_row = s.get(Job, parent_id)
+            sfm = parent_row.sfm if parent_row is not None else None
     if kind == JobKind.TRAIN:
         config, note = placed_config(config, device)
         if note:
@@ -518,11 +533,13 @@ def run_job(
     try:
         try:
             run_dir = patiently("fetch the run folder", lambda: store.local(run_key))
-            scene_dir = patiently("fetch the scene", lambda: store.local(scene_files_key(scene_id)))
             reporter.sync = lambda: patiently("send the run folder", lambda: store.push(run_key))
             if kind == JobKind.MESH:
                 assert parent_id is not None
                 parent_key = job_run_key(parent_id)
+                scene_dir = patiently(
+                    "fetch the scene", lambda: store.local(scene_key(parent_id, scene_id, sfm))
+                )
                 parent = patiently(
                     "fetch the parent's checkpoint", lambda: store.local(parent_key, PARENT_FILES)
                 )
@@ -535,7 +552,16 @@ def run_job(
                     device,
                     settings.mesh_max_resolution,
                 )
+            elif sfm is not None:  # photos without poses: the sfm phase first
+                found = recover_scene(store, job_id, scene_id, sfm, run_dir, reporter, patiently)
+                if found is None:  # cancelled, or this runner is shutting down
+                    status = "cancelled"
+                else:
+                    status = _run_training(config, found, run_dir, reporter)
             else:
+                scene_dir = patiently(
+                    "fetch the scene", lambda: store.local(scene_files_key(scene_id))
+                )
                 status = _run_training(config, scene_dir, run_dir, reporter)
             state = JobState.SUCCEEDED if status == "succeeded" else JobState.CANCELLED
         except Exception as exc:
@@ -556,8 +582,12 @@ def run_job(
     finally:
         if kind == JobKind.MESH and parent_id is not None:
             store.drop_local(job_run_key(parent_id))
+            if sfm is not None:
+                store.drop_local(job_scene_key(parent_id))
         if not reporter.lost:  # a runner that took over may be working in it
             store.drop_local(run_key)  # the store has it; a bucket's local copy is spent
+            if sfm is not None and kind == JobKind.TRAIN:
+                store.drop_local(job_scene_key(job_id))
 
 
 def _settle(
