@@ -21,6 +21,7 @@ import httpx
 import pytest
 
 from tests.api.support import LiveServer, list_all, make_settings, wait_for
+from tests.photo_capture import VIEWS, photo_files
 from tests.s3_server import S3Server
 from tests.worker.flow import job, ready_scene, submit, wait_state
 from tests.worker.support import RedisServer, Workers, needs_redis
@@ -182,6 +183,39 @@ def test_the_whole_trip_through_the_bucket(
     assert s3.keys(bucket, f"glint/jobs/{job_id}/") == []
     assert s3.keys(bucket, f"glint/jobs/{mesh_job['id']}/") == []
     assert not [f for f in _files(roots["api"]) if job_id in f]  # and the API's copy
+
+
+def test_photos_without_poses_through_the_bucket(
+    s3: S3Server, bucket: str, workers: Workers, client: httpx.Client, roots: dict[str, Path]
+) -> None:
+    """Issue 23: a Celery worker recovers the cameras of an images-only scene from the
+    bucket, stores the SfM scene beside the run, trains on it; a mesh job reads it back."""
+    files = photo_files()
+    scene_id = ready_scene(client, files)
+    job_id = submit(client, scene_id, iterations=10, outputs={"mesh": False})
+    done = wait_state(client, job_id)
+    assert done["state"] == "succeeded", (done["error"], workers.logs()[-3000:])
+    assert done["sfm"]["result"]["registered"] == VIEWS
+
+    arts = {a["name"] for a in list_all(client, f"/v1/jobs/{job_id}/artifacts")}
+    sfm = {"sfm_report.json", "sfm_report.txt", "sparse/0/cameras.bin", "sparse/0/images.bin"}
+    assert sfm | {"checkpoint.pt"} <= arts, arts
+    assert sorted(f"glint/jobs/{job_id}/run/{n}" for n in arts) == s3.keys(
+        bucket, f"glint/jobs/{job_id}/run/"
+    )
+    scene_keys = s3.keys(bucket, f"glint/jobs/{job_id}/scene/")
+    assert f"glint/jobs/{job_id}/scene/sparse/0/points3D.bin" in scene_keys
+    assert len([k for k in scene_keys if "/scene/images/" in k]) == VIEWS
+    assert len(s3.keys(bucket, f"glint/scenes/{scene_id}/")) == len(files)  # as uploaded
+
+    r = client.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 24})
+    assert r.status_code == 201, r.text
+    mesh_job = wait_state(client, r.json()["id"])
+    assert mesh_job["state"] == "succeeded", mesh_job["error"]
+    for name in ("worker-a", "worker-b"):  # local copies are dropped once stored
+        assert not [f for f in _files(roots[name]) if f"jobs/{job_id}" in f], name
+    assert client.delete(f"/v1/jobs/{job_id}").status_code == 204
+    assert s3.keys(bucket, f"glint/jobs/{job_id}/") == []
 
 
 def _iteration(c: httpx.Client, job_id: str) -> int:
