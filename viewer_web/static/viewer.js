@@ -261,7 +261,9 @@
     const pill = $("job-state");
     pill.textContent = job.state;
     pill.className = `pill ${job.state}`;
-    const stage = job.stage && job.state === "running" ? ` · ${job.stage.name}: ${job.stage.step}` : "";
+    const st = job.stage;  // e.g. mesh: integrate 3/24, sfm: matching 40/66
+    const count = st && st.total ? ` ${st.done}/${st.total}` : "";
+    const stage = st && job.state === "running" ? ` · ${st.name}: ${st.step}${count}` : "";
     $("job-phase").textContent = job.phase ? `phase: ${job.phase}${stage}` : "";
     if (job.state === "succeeded" && state.lastJobState !== "succeeded" && sessionStorage.getItem(KEY_STORE)) {
       setTimeout(() => state.refreshMeshes && state.refreshMeshes(), 0);
