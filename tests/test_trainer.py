@@ -183,3 +183,17 @@ def test_a_step_reads_back_from_the_device_once(tiny_scene, tmp_path):
     assert StepReads.count == 4
     terms = [v for k, v in losses.items() if k != "total" and not k.startswith("densify_")]
     assert losses["total"] == pytest.approx(sum(terms))
+
+
+def test_resuming_a_finished_run_records_its_last_row_once(tiny_scene, tmp_path):
+    """A runner killed after the last evaluation but before the job was marked done is
+    resumed on a run whose last row exists: it must not be written again."""
+    cfg = config_from_dict({**TINY, "iterations": 20})
+    t = Trainer(tiny_scene, cfg, tmp_path)
+    t.setup(resume=False)
+    t.train()
+    again = Trainer(tiny_scene, cfg, tmp_path)
+    again.setup(resume=True)
+    assert again.train().iteration == 20
+    its = [r["iteration"] for r in read_metrics(tmp_path / "metrics.jsonl")]
+    assert its == sorted(set(its)) and its[-1] == 20

@@ -303,6 +303,11 @@ class Trainer:
         pos = int(x["rng_python_pos"])
         random.setstate((3, tuple(int(v) for v in x["rng_python"]), None if pos < 0 else pos))
         self.metrics.truncate_after(self.iteration)
+        rows = self.metrics.rows()
+        if rows and rows[-1].get("iteration") == self.iteration:
+            # the row of this iteration is recorded already (a run stopped after its
+            # last evaluation): the end of train() must not record it twice
+            self.last_eval = rows[-1]
         self.on_event({"type": "resumed", "iteration": self.iteration})
 
     # -- one step ---------------------------------------------------------
