@@ -50,8 +50,10 @@ KIT_TESTS = (
 )
 # needed at run time but never imported by name in the scanned code
 INDIRECT = ("fast-simplification", "httptools", "watchfiles")  # trimesh.simplify, uvicorn
-# imported where present, with a stated fallback where not (LPIPS: "unavailable")
-OPTIONAL_MODULES = frozenset({"lpips"})
+# imported where present, with a stated fallback where not (LPIPS: "unavailable"; SfM:
+# a clear error, it runs on the CPU before training and pycolmap's wheel alone is
+# 36 MiB; obstore: only bench/store_io.py compares it, skipped when absent)
+OPTIONAL_MODULES = frozenset({"lpips", "pycolmap", "obstore"})
 # provided with the CUDA torch, never carried
 TORCH_SIDE = re.compile(r"^(torch|triton|nvidia-.*|cuda-.*)$")
 # the target: CPython 3.12 on x86-64 Linux
