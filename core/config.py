@@ -101,6 +101,13 @@ class LossWeights(_Strict):
     multiview_error_weighting: bool = Field(
         True, description="weight L_multi pixels by PGSR's exp(-reprojection error)"
     )
+    silhouette: float = Field(
+        0.05,
+        ge=0,
+        le=MAX_LOSS_WEIGHT,
+        description="weight of the silhouette-point depth loss (mean |error| in pixel "
+        "footprints; masked captures only, see core/training/silhouette.py)",
+    )
 
 
 class LearningRates(_Strict):
@@ -151,6 +158,16 @@ class Ablation(_Strict):
     single_view: bool = True
     multi_view: bool = True
     planar: bool = Field(True, description="False: full covariance (no scale loss)")
+    silhouette: bool = Field(
+        True,
+        description="False: no silhouette points (the paper's method has none; Glint adds "
+        "them because fitting alpha alone shrinks surfaces by their splats' blur)",
+    )
+    one_sided: bool = Field(
+        True,
+        description="False: two-sided splats (the paper's); True: each splat learns which "
+        "side it is seen from and views behind it cull it (core/render/orientation.py)",
+    )
 
 
 class Evaluation(_Strict):

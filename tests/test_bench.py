@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from core.benchmark.configs import CONFIGS, bench_config, parse_configs
+from core.benchmark.configs import CONFIGS, LABELS, bench_config, parse_configs
 from core.benchmark.tables import mean_curve, results_table
 from core.cli import main
 from core.errors import GlintError
@@ -63,7 +63,7 @@ def bench_run(tmp_path_factory) -> tuple[Path, Path]:
 def test_bench_writes_both_rows_and_the_figure(bench_run) -> None:
     _, out = bench_run
     md = (out / "bench.md").read_text()
-    assert "| Full model |" in md and "| SH only (no deferred, no L_single, no L_multi) |" in md
+    assert f"| {LABELS['full']} |" in md and f"| {LABELS['sh_only']} |" in md
     assert "2/2 runs finished" in md
     assert "At equal wall time" in md and "Training seconds until CD×10²" in md
     assert f"Command: `glint bench {bench_run[0]} --budget {BUDGET}" in md

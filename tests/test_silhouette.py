@@ -21,6 +21,8 @@ from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer
 from core.scene.synthetic import SPHERE_RADIUS, make_scene, surface_points
 from core.scene.views import Scene
+from core.training.planner import decide_silhouette, plan_scene
+from core.training.silhouette import SilhouetteDepth, silhouette_points
 
 
 @pytest.fixture(scope="module")
@@ -73,3 +75,84 @@ def test_the_config_chooses_the_filter_and_old_runs_keep_theirs() -> None:
     assert saved_config({"iterations": 100}).lowpass_2d == 0.3
     with pytest.raises(ValueError):
         TrainConfig(lowpass_2d=-0.1)
+
+
+# -- silhouette points (core.training.silhouette) ------------------------------
+
+
+@pytest.fixture(scope="module")
+def loose_sphere() -> Scene:
+    scene = make_scene("sphere", "diffuse", n_train=16, n_test=0, size=48, samples=4)
+    scene.radius = 1.2  # loaders' bounds are loose: rays start well outside the object
+    return scene
+
+
+def test_silhouette_points_lie_on_the_surface_with_its_normals(loose_sphere: Scene) -> None:
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None and len(pts) > 500
+    r = pts.points.norm(dim=-1)
+    footprint = 3.0 / loose_sphere.train[0].camera.intrinsics.fx  # cameras at distance 3
+    # on the sphere to a fraction of a pixel (the hull of 16 views is a little loose)
+    assert abs(float(r.median()) - SPHERE_RADIUS) < 0.2 * footprint
+    assert float((r - SPHERE_RADIUS).abs().quantile(0.9)) < 0.5 * footprint
+    cos = (pts.normals * pts.points / r[:, None]).sum(-1)
+    assert float(cos.median()) > 0.98 and float(cos.quantile(0.05)) > 0.9
+    assert set(pts.source.tolist()) == set(range(16))
+
+
+def test_silhouette_depth_measures_how_far_a_surface_shrank(loose_sphere: Scene) -> None:
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    assert min(loss.counts()) > 50
+    footprint = 3.0 / loose_sphere.train[0].camera.intrinsics.fx
+
+    def mean_loss(shrink: float) -> float:
+        g = discs_on_the_sphere()
+        with torch.no_grad():
+            g.params["means"].mul_(shrink)
+        vals = []
+        for i, v in enumerate(loose_sphere.train):
+            with torch.no_grad():
+                gb, _ = render_gbuffer(g, v.camera, sh_degree=0, antialiased=True, lowpass=1 / 12)
+            vals.append(float(loss(i, v.camera, gb.depth, gb.depth_valid)))
+        return float(np.mean(vals))
+
+    right, shrunk = mean_loss(1.0), mean_loss(0.97)
+    # measured: 0.33 px for discs on the truth, 0.72 px shrunk by 0.4 px
+    assert right < 0.5
+    assert shrunk - right == pytest.approx(0.03 * SPHERE_RADIUS / footprint, abs=0.15)
+
+
+def test_silhouette_depth_pulls_the_depth_towards_the_points(loose_sphere: Scene) -> None:
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    v = loose_sphere.train[3]
+    truth = torch.full((v.height, v.width), 2.5)
+    depth = (truth + 0.02).requires_grad_(True)  # a surface behind the points
+    valid = torch.ones(v.height, v.width, dtype=torch.bool)
+    value = loss(3, v.camera, depth, valid)
+    value.backward()
+    assert depth.grad is not None and float(depth.grad.sum()) != 0.0
+    # nearer surfaces hide a point: a depth map far in front of every point gives zero
+    hidden = loss(3, v.camera, torch.full((v.height, v.width), 0.5), valid)
+    assert float(hidden) == 0.0
+
+
+def test_no_masks_no_silhouette_points() -> None:
+    scene = make_scene("sphere", "diffuse", n_train=4, n_test=0, size=16, samples=1)
+    for v in scene.train:
+        v.mask = None
+    assert silhouette_points(scene) is None
+    dec = decide_silhouette(scene, TrainConfig())
+    assert dec.value is False and "masks" in dec.reason
+
+
+def test_the_plan_decides_silhouette_points(loose_sphere: Scene) -> None:
+    assert decide_silhouette(loose_sphere, TrainConfig()).value is True
+    off = TrainConfig(ablation={"silhouette": False})
+    assert decide_silhouette(loose_sphere, off).value is False
+    assert decide_silhouette(loose_sphere, TrainConfig(loss={"silhouette": 0.0})).value is False
+    plan = plan_scene(loose_sphere, TrainConfig(plan_overrides={"silhouette": False}))
+    assert plan.silhouette.value is False and plan.silhouette.overridden

@@ -34,11 +34,13 @@ def _params(t: Trainer) -> dict[str, torch.Tensor]:
 
 
 def test_full_run_writes_every_output(tiny_scene, tmp_path):
-    # 80 iterations: at 24 px each densification step costs antialiased splatting ~1 dB
-    # (split Gaussians shrink towards the low-pass and fade), recovered ~40 steps later.
-    cfg = config_from_dict({**TINY, "iterations": 80})
+    # 120 iterations: at 24 px each densification step costs antialiased splatting ~1 dB
+    # (split Gaussians shrink towards the low-pass and fade), recovered ~40 steps later,
+    # and the silhouette points hold the surface out where the splats are still round
+    # blobs that overhang it (end of the run: 19.1 dB after 80 iterations, 23.6 after 120).
+    cfg = config_from_dict({**TINY, "iterations": 120})
     result, _ = train_scene(tiny_scene, tmp_path, cfg)
-    assert result.status == "succeeded" and result.iteration == 80
+    assert result.status == "succeeded" and result.iteration == 120
     for name in (
         "checkpoint.pt",
         "point_cloud.ply",
@@ -51,7 +53,7 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         assert (tmp_path / name).is_file(), name
     rows = read_metrics(tmp_path / "metrics.jsonl")
     its = [r["iteration"] for r in rows]
-    assert its == sorted(set(its)) and its[0] == 0 and its[-1] == 80
+    assert its == sorted(set(its)) and its[0] == 0 and its[-1] == 120
     assert all(r["wall_time"] >= 0 for r in rows)
     assert {r["phase"] for r in rows} >= {"rgb", "multiview"}
     assert rows[-1]["psnr"] > rows[0]["psnr"]
@@ -66,8 +68,12 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         "multi_view",
         "background",
         "mesh",
+        "silhouette",
     }
     assert not plan["decisions"]["envmap"]["pending"]
+    # the scene has alpha: silhouette points were found and counted
+    sil = plan["decisions"]["silhouette"]
+    assert sil["value"] is True and sil["evidence"]["points"] > 0
     report = (tmp_path / "report.md").read_text()
     assert "error_vs_time.png" in report
     assert all(f"| {r['iteration']} |" in report for r in rows)  # a table row per evaluation

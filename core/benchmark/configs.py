@@ -1,4 +1,6 @@
-"""The benchmark's configurations: the paper's Table 3 ablations and an SH-only baseline."""
+"""The benchmark's configurations: the paper's Table 3 ablations, Glint's two additions
+switched off (silhouette points, one-sided splats; both off = the paper's full model)
+and an SH-only baseline."""
 
 from __future__ import annotations
 
@@ -16,7 +18,16 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "eq5_depth": {"planar_depth": False},
     "no_single": {"single_view": False},
     "no_multi": {"multi_view": False},
-    "sh_only": {"deferred_shading": False, "single_view": False, "multi_view": False},
+    "no_silhouette": {"silhouette": False},
+    "two_sided": {"one_sided": False},
+    "paper": {"silhouette": False, "one_sided": False},
+    "sh_only": {
+        "deferred_shading": False,
+        "single_view": False,
+        "multi_view": False,
+        "silhouette": False,
+        "one_sided": False,
+    },
 }
 LABELS = {
     "full": "Full model",
@@ -24,10 +35,23 @@ LABELS = {
     "eq5_depth": "w/o depth compute (Eq. 5 depth)",
     "no_single": "w/o L_single",
     "no_multi": "w/o L_multi",
-    "sh_only": "SH only (no deferred, no L_single, no L_multi)",
+    "no_silhouette": "w/o silhouette points",
+    "two_sided": "w/o one-sided splats",
+    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats)",
+    "sh_only": "SH only (no deferred, no L_single, no L_multi; two-sided, no silhouette points)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
-TABLE_ORDER = ("sh_only", "no_deferred", "eq5_depth", "no_single", "no_multi", "full")
+TABLE_ORDER = (
+    "sh_only",
+    "no_deferred",
+    "eq5_depth",
+    "no_single",
+    "no_multi",
+    "no_silhouette",
+    "two_sided",
+    "paper",
+    "full",
+)
 
 
 def parse_configs(text: str | Sequence[str]) -> list[str]:

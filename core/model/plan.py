@@ -16,8 +16,16 @@ from typing import Any
 from core.config import TrainConfig
 
 # Parts a user may override with ``plan_overrides``; every decision of a plan.
-OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh")
-DECISION_KEYS = ("envmap", "envmap_resolution", "sh_degree", "multi_view", "background", "mesh")
+OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette")
+DECISION_KEYS = (
+    "envmap",
+    "envmap_resolution",
+    "sh_degree",
+    "multi_view",
+    "background",
+    "mesh",
+    "silhouette",
+)
 # The paper's cube-map face size (6 × 128 × 128).
 PAPER_ENVMAP_RESOLUTION = 128
 
@@ -47,6 +55,9 @@ class ScenePlan:
     init: dict[str, Any] = field(default_factory=dict)
     envmap_resolution: Decision = field(
         default_factory=lambda: Decision(PAPER_ENVMAP_RESOLUTION, "the paper's default")
+    )
+    silhouette: Decision = field(
+        default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
 
     def neighbour_of(self, view_index: int) -> int | None:

@@ -45,6 +45,8 @@ class Phase:
     planar_depth: bool
     scale_loss: bool
     antialiased: bool = True
+    silhouette: bool = False  # the silhouette-point depth loss (core.training.silhouette)
+    one_sided: bool = False  # cull splats seen from behind (core.render.orientation)
     lowpass: float = 0.3  # px² added to each splat's 2D covariance (TrainConfig.lowpass_2d)
 
 
@@ -107,6 +109,7 @@ def phase_at(
     multi_view_planned: bool = True,
     max_sh_degree: int | None = None,
     reset_every: int | None = None,
+    silhouette_planned: bool = True,
 ) -> Phase:
     """Phase of ``iteration`` (0-based): RGB → + single view & env map → + multi view."""
     m = Marks.of(cfg)
@@ -125,5 +128,7 @@ def phase_at(
         planar_depth=ab.planar_depth,
         scale_loss=ab.planar,
         antialiased=cfg.antialiased,
+        silhouette=geo and ab.silhouette and silhouette_planned and not paused,
+        one_sided=ab.one_sided,
         lowpass=cfg.lowpass_2d,
     )

@@ -28,6 +28,7 @@ from core.model.schedule import Phase, phase_at
 from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer, render_gbuffer_tensors
+from core.render.orientation import facing
 from core.render.raster import resolve_backend
 from core.render.shading import deferred_shade
 from core.scene.cameras import Camera, Intrinsics
@@ -224,18 +225,21 @@ class TrainedModel:
         sh_degree = phase.sh_degree if wanted & COLOURED else 0
         if self._static is not None:
             st = self._static
+            cull = facing(self.gaussians, camera, st["normals"]) if phase.one_sided else None
             colors = st.get("colors")
             if colors is None:
                 colors = self.gaussians.colors(camera, sh_degree)
+            opacities = st["opacities"] if cull is None else st["opacities"] * cull
             gb, _ = render_gbuffer_tensors(
-                st["means"], None, None, st["opacities"], colors, st["normals"], st["w_r"],
+                st["means"], None, None, opacities, colors, st["normals"], st["w_r"],
                 camera, covariances=st["covariances"], backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass,
             )  # fmt: skip
         else:
+            cull = facing(self.gaussians, camera) if phase.one_sided else None
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
-                antialiased=phase.antialiased, lowpass=phase.lowpass,
+                antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

@@ -54,6 +54,11 @@ PARAM_SHAPES: dict[str, tuple[int, ...]] = {
     "refl_logits": (),
 }
 
+# Per-Gaussian state kept with the parameters but never trained: what the views saw of
+# each splat's sides (core.render.orientation). Carried through densification and
+# checkpoints like a parameter; no optimizer, no gradient.
+UNTRAINED_KEYS = ("seen_dir", "seen_count")
+
 DEFAULT_INIT_OPACITY = 0.1
 # Small, so base colour explains the images first and the environment map earns its
 # weight where the scene is specular (3DGS-DR also starts near zero).
@@ -103,7 +108,9 @@ class Gaussians:
         if isinstance(params, nn.ParameterDict):
             self.params = params
         else:
-            self.params = nn.ParameterDict({k: _as_param(v) for k, v in params.items()})
+            self.params = nn.ParameterDict(
+                {k: _as_param(v, k not in UNTRAINED_KEYS) for k, v in params.items()}
+            )
         self.sh_degree = int(sh_degree)
 
     # -- construction -----------------------------------------------------

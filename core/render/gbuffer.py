@@ -226,14 +226,21 @@ def render_gbuffer_tensors(
 
 
 def render_gbuffer(
-    gaussians: Gaussians, camera: Camera, *, sh_degree: int, backend: str = "auto", **kw
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    sh_degree: int,
+    backend: str = "auto",
+    opacity_scale: Tensor | None = None,
+    **kw,
 ) -> tuple[GBuffer, RasterResult]:
     """G-buffer of a Gaussian model for one view (SH evaluated toward this camera)."""
+    op = gaussians.opacities if opacity_scale is None else gaussians.opacities * opacity_scale
     return render_gbuffer_tensors(
         gaussians.params["means"],
         gaussians.unit_quats,
         gaussians.scales,
-        gaussians.opacities,
+        op,
         gaussians.colors(camera, sh_degree),
         gaussians.normals(),
         gaussians.w_r,

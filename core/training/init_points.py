@@ -16,7 +16,7 @@ from core.render.depth_geometry import bilinear_lookup
 from core.scene.views import Scene
 
 
-def _inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
+def inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
     """(M,) bool: inside the mask in ≥ ``min_fraction`` of the views that see the point."""
     inside = torch.zeros(points.shape[0])
     seen = torch.zeros(points.shape[0])
@@ -44,7 +44,7 @@ def _refine_entry(
     hull, or equal to ``hi`` for a ray that starts inside) and ``hi`` (inside)."""
     for _ in range(bisections):
         mid = 0.5 * (lo + hi)
-        inside = _inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
+        inside = inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
         hi = torch.where(inside, mid, hi)
         lo = torch.where(inside, lo, mid)
     return hi
@@ -98,7 +98,7 @@ def visual_hull_points(
         s = torch.linspace(0, 1, samples_per_ray, dtype=torch.float64)
         t = t0[:, None] + (t1 - t0)[:, None] * s[None]
         P = o + d[:, None, :] * t[..., None]
-        inside = _inside_hull(P.reshape(-1, 3), scene, min_fraction).reshape(per_view, -1)
+        inside = inside_hull(P.reshape(-1, 3), scene, min_fraction).reshape(per_view, -1)
         inside &= hit[:, None]
         found = inside.any(1)
         first = inside.float().argmax(1)

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor
 
 from core.config import TrainConfig
-from core.render.gaussians import Gaussians
+from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 
 
 def make_optimizers(
@@ -32,6 +32,7 @@ def make_optimizers(
     return {
         k: torch.optim.Adam([g.params[k]], lr=rates[k], eps=1e-15, betas=(0.9, 0.999))
         for k in g.params
+        if k not in UNTRAINED_KEYS
     }
 
 

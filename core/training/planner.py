@@ -194,10 +194,28 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         mesh = Decision(False, "switched off by outputs.mesh (`glint mesh` makes one later)")
     plan = ScenePlan(
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
-            [float(c.intrinsics.fx) for c in cams], cfg)
+            [float(c.intrinsics.fx) for c in cams], cfg), silhouette=decide_silhouette(scene, cfg)
     )  # fmt: skip
     _apply_overrides(plan, cfg)
     return plan
+
+
+def decide_silhouette(scene: Scene, cfg: TrainConfig) -> Decision:
+    """Silhouette points (core.training.silhouette) where at least two views have masks;
+    the points themselves are found when training starts."""
+    masked = sum(1 for v in scene.train if v.mask is not None)
+    evidence = {"masked_views": masked, "views": len(scene.train)}
+    if not cfg.ablation.silhouette:
+        return Decision(False, "switched off by the ablation config", evidence)
+    if cfg.loss.silhouette <= 0:
+        return Decision(False, "loss.silhouette is 0", evidence)
+    if masked < 2:
+        return Decision(False, "fewer than two views have alpha or masks", evidence)
+    reason = (
+        f"{masked}/{len(scene.train)} views have masks: their silhouettes give surface "
+        "points that pin the surface where fitting alpha alone would shrink it"
+    )
+    return Decision(True, reason, evidence)
 
 
 @torch.no_grad()

@@ -24,7 +24,7 @@ from core.devices import require_device
 from core.errors import BackendUnavailableError
 from core.evaluation.progress import CHAMFER_FRACTIONS, ProgressEvaluator
 from core.model.checkpoint import load_checkpoint, save_checkpoint
-from core.model.plan import ScenePlan
+from core.model.plan import Decision, ScenePlan
 from core.model.schedule import Marks, Phase, phase_at
 from core.model.trained import (
     CHECKPOINT_NAME,
@@ -34,8 +34,9 @@ from core.model.trained import (
 )
 from core.outputs.report import MetricsLog
 from core.render.envmap import EnvMap
-from core.render.gaussians import Gaussians
+from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
+from core.render.orientation import add_orientation_state, facing, record_visibility
 from core.render.raster import resolve_backend
 from core.render.shading import ShadeResult, deferred_shade
 from core.scene.views import Scene, View
@@ -51,6 +52,7 @@ from core.training.losses import (
 )
 from core.training.optim import make_optimizers, means_lr, set_lr
 from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
+from core.training.silhouette import SilhouetteDepth, silhouette_points
 
 Event = dict[str, Any]
 # Cadence evaluations while training may take at most this share of the training time:
@@ -109,12 +111,13 @@ def forward_view(
     backend: str,
     *,
     absgrad: bool = False,
+    opacity_scale: Tensor | None = None,
 ) -> tuple[GBuffer, ShadeResult, Any]:
     """The training forward pass of one view: G-buffer + deferred shading for ``phase``
     (with gradients; readers of a trained model use ``TrainedModel.render``)."""
     gb, res = render_gbuffer(
         gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
-        antialiased=phase.antialiased, lowpass=phase.lowpass,
+        antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
     )  # fmt: skip
     shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
     return gb, shade, res
@@ -165,6 +168,7 @@ class Trainer:
         self.envmap: EnvMap | None = None
         self.optimizers: dict[str, torch.optim.Optimizer] = {}
         self.strategy = DensifyStrategy(cfg, self.radius)
+        self.silhouette: SilhouetteDepth | None = None
         self.last_eval: dict[str, Any] = {}
         self.last_losses: dict[str, float] = {}
 
@@ -195,10 +199,34 @@ class Trainer:
             method = "sparse point cloud" if self.scene.points is not None else "random in bounds"
             self.plan.init = {"method": method, "points": g.num}
         self.gaussians = g.to(self.device)
+        if self.cfg.ablation.one_sided:
+            add_orientation_state(self.gaussians)
         if self.plan.envmap_possible(self.cfg):
             self.envmap = EnvMap(int(self.plan.envmap_resolution.value)).to(self.device)
         self.optimizers = self._make_optimizers()
+        self._prepare_silhouette()
         self.plan.save(self.out / "plan.json")
+
+    def _prepare_silhouette(self) -> None:
+        """Find the silhouette points the plan asks for (again on resume: they are a
+        deterministic function of the masks), and record how many there are."""
+        self.silhouette = None
+        dec = self.plan.silhouette
+        if not dec.value:
+            return
+        pts = silhouette_points(self.scene, seed=self.cfg.seed)
+        if pts is None or len(pts) == 0:
+            self.plan.silhouette = Decision(
+                False, "no silhouette ray touches the visual hull", dec.evidence, dec.overridden
+            )
+            return
+        self.silhouette = SilhouetteDepth(pts, [v.camera for v in self.scene.train])
+        counts = self.silhouette.counts()
+        dec.evidence = {
+            **dec.evidence,
+            "points": len(pts),
+            "median_points_per_view": int(np.median(counts)) if counts else 0,
+        }
 
     def _resize_schedule(self, iterations: int) -> None:
         """Scale the schedule (phases, densification, learning rate) to ``iterations``."""
@@ -277,11 +305,14 @@ class Trainer:
         ck = load_checkpoint(path, self.device)
         x = ck.extra
         self.gaussians = ck.gaussians
-        for p in self.gaussians.params.values():
-            p.requires_grad_(True)
+        for k, p in self.gaussians.params.items():
+            p.requires_grad_(k not in UNTRAINED_KEYS)
+        if self.cfg.ablation.one_sided:
+            add_orientation_state(self.gaussians)  # a run from before one-sided splats
         self.plan = ScenePlan.from_dict(x["plan"])
         self.envmap = envmap_from_state(x.get("envmap"), self.device)
         self.optimizers = self._make_optimizers()
+        self._prepare_silhouette()
         for k, o in self.optimizers.items():
             if k in x["optimizers"]:
                 o.load_state_dict(x["optimizers"][k])
@@ -325,6 +356,7 @@ class Trainer:
             multi_view_planned=bool(self.plan.multi_view.value),
             max_sh_degree=int(self.plan.sh_degree.value),
             reset_every=self.strategy.reset_every,
+            silhouette_planned=bool(self.plan.silhouette.value),
         )
 
     def _gradient_ratios(self) -> list[Tensor]:
@@ -352,9 +384,10 @@ class Trainer:
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
+        cull = facing(self.gaussians, view.camera) if phase.one_sided else None
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
-            absgrad=cfg.densify.absgrad,
+            absgrad=cfg.densify.absgrad, opacity_scale=cull,
         )  # fmt: skip
         self.strategy.step_pre_backward(res)
         target = view.composited(bg)
@@ -366,10 +399,16 @@ class Trainer:
         depth, valid = geometry_depth(gb, phase.planar_depth)
         if view.mask is not None:
             valid = valid & (view.mask > 0.5)
+        if phase.one_sided:
+            record_visibility(self.gaussians, view.camera, depth.detach(), valid)
         if phase.single_view and cfg.loss.single_view > 0:
             weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
             terms["single_view"] = cfg.loss.single_view * single_view_loss(
                 gb.normal, depth, valid, view.camera, weight
+            )
+        if phase.silhouette and self.silhouette is not None:
+            terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
+                vi, view.camera, depth, valid
             )
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
@@ -377,6 +416,7 @@ class Trainer:
             gb_n, _ = render_gbuffer(
                 self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass,
+                opacity_scale=facing(self.gaussians, nview.camera) if phase.one_sided else None,
             )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
             if nview.mask is not None:
