@@ -24,10 +24,12 @@ from api.service.settings import Settings
 from api.service.store import ArtifactStore, LocalStore, StoreProbe
 
 _bearer = HTTPBearer(auto_error=False, description="an API key from `glint keys create`")
+CredentialsDep = Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)]
 SCOPE_EXTRA = "x-glint-scope"  # openapi_extra key: the scope a route needs (see required_scope)
 _SAFE_METHODS = frozenset({"GET", "HEAD", "OPTIONS"})
 log = logging.getLogger("glint.api")
 _CLEANUP = anyio.CapacityLimiter(16)  # session cleanups never wait behind route threads
+READ_THREADS = 4  # threads for the reads on every request's path (see read_threads)
 
 
 def get_settings(request: Request) -> Settings:
@@ -82,19 +84,41 @@ async def get_db(request: Request) -> AsyncIterator[Session]:
             session.close()  # ends a read transaction: no writes, no waiting on locks
 
 
-def _lookup(database: Database, key: str, last_used_every_s: float) -> auth.Principal | None:
-    """The key's principal (one indexed read); marks it used when that is due."""
-    with database.read() as session:
-        record = auth.lookup(session, key)
-    if record is None:
-        return None
-    if auth.due(record, last_used_every_s):
-        try:
-            with database.write() as session:
-                auth.touch(session, record.principal.key_id, last_used_every_s)
-        except Exception:  # a busy database must not fail the request over a timestamp
-            log.warning("could not record the use of key %s", record.principal.key_id)
-    return record.principal
+def read_key(database: Database, key: str) -> auth.KeyRecord | None:
+    """The key's record: one indexed read on a bare connection (no ORM session)."""
+    with database.engine.connect() as connection:
+        return auth.lookup(connection, key)
+
+
+def _mark_used(database: Database, record: auth.KeyRecord, every_s: float) -> None:
+    try:
+        with database.write() as session:
+            auth.touch(session, record.principal.key_id, every_s)
+    except Exception:  # a busy database must not fail the request over a timestamp
+        log.warning("could not record the use of key %s", record.principal.key_id)
+
+
+async def note_use(request: Request, record: auth.KeyRecord) -> None:
+    """Record the key's use when its last one is older than ``GLINT_KEY_LAST_USED_S``.
+
+    A write, so it runs on the route threads (it may wait for SQLite's write lock), not
+    on the read threads (:func:`read_threads`); it is due about once a minute per key.
+    """
+    every_s = request.app.state.settings.key_last_used_s
+    if auth.due(record, every_s):
+        await run_in_threadpool(_mark_used, request.app.state.database, record, every_s)
+
+
+def read_threads(request: Request) -> anyio.CapacityLimiter:
+    """The few threads that run the reads on every request's path (the caller's key, a
+    job's status): short indexed reads that never wait for a lock.
+
+    On the route threads (``GLINT_THREADS``, 40) they would run 40 at a time under load,
+    each waiting for the GIL behind the others and behind the event loop; a handful at
+    a time answers more requests, sooner (docs/api.md, *Latency under load*).
+    """
+    limiter: anyio.CapacityLimiter = request.app.state.read_threads
+    return limiter
 
 
 def required_scope(request: Request) -> str:
@@ -108,28 +132,39 @@ def required_scope(request: Request) -> str:
     return "read" if request.method in _SAFE_METHODS else "write"
 
 
-async def get_principal(
-    request: Request,
-    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(_bearer)],
-) -> auth.Principal:
-    """The caller, from ``Authorization: Bearer <key>``, checked against the route's scope.
+_CHALLENGE = {"WWW-Authenticate": 'Bearer realm="glint"'}
 
-    Every request looks its key up: a revoked key fails at once, on every replica.
-    """
-    challenge = {"WWW-Authenticate": 'Bearer realm="glint"'}
+
+def presented_key(credentials: HTTPAuthorizationCredentials | None) -> str:
+    """The key of ``Authorization: Bearer <key>``; 401 when there is none."""
     if credentials is None:
-        raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'", challenge)
-    database: Database = request.app.state.database
-    settings: Settings = request.app.state.settings
-    principal = await run_in_threadpool(
-        _lookup, database, credentials.credentials, settings.key_last_used_s
-    )
-    if principal is None:
-        raise _unauthorized("invalid or revoked API key", challenge)
+        raise _unauthorized("missing API key: send 'Authorization: Bearer <key>'", _CHALLENGE)
+    return credentials.credentials
+
+
+def authorize(request: Request, record: auth.KeyRecord | None) -> auth.Principal:
+    """The caller of a looked-up key: 401 unless it is live, 403 unless its scope covers
+    the route's."""
+    if record is None:
+        raise _unauthorized("invalid or revoked API key", _CHALLENGE)
+    principal = record.principal
     needed = required_scope(request)
     if not auth.allows(principal.scope, needed):
         raise forbidden(principal, needed, f"{request.method} {request.url.path}")
     return principal
+
+
+async def get_principal(request: Request, credentials: CredentialsDep) -> auth.Principal:
+    """The caller, from ``Authorization: Bearer <key>``, checked against the route's scope.
+
+    Every request looks its key up: a revoked key fails at once, on every replica.
+    """
+    key = presented_key(credentials)
+    database: Database = request.app.state.database
+    record = await anyio.to_thread.run_sync(read_key, database, key, limiter=read_threads(request))
+    if record is not None:
+        await note_use(request, record)
+    return authorize(request, record)
 
 
 def _unauthorized(detail: str, headers: dict[str, str]) -> ApiError:

@@ -15,7 +15,7 @@ from fastapi.openapi.utils import get_openapi
 from sqlalchemy import update
 
 import viewer_web
-from api.deps import SCOPE_EXTRA
+from api.deps import READ_THREADS, SCOPE_EXTRA
 from api.problems import PROBLEM_JSON, install_handlers
 from api.routers import artifacts, jobs, keys, meshes, metrics, scenes, viewer, workers
 from api.service.db import Database
@@ -101,6 +101,7 @@ def create_app(
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         anyio.to_thread.current_default_thread_limiter().total_tokens = settings.threads
+        app.state.read_threads = anyio.CapacityLimiter(READ_THREADS)
         apply_to_core(settings)  # kernel threads, native kernels (also from a .env file)
         database = Database(settings.db_url)
         if settings.auto_migrate:
