@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from sqlalchemy import func, select
+from typing import Any
+
+from sqlalchemy import Row, func, select
 from sqlalchemy.orm import Session
 
 from api.schemas import JobOut, SceneOut
@@ -41,7 +43,7 @@ def scene_out_one(session: Session, scene: Scene) -> SceneOut:
     return scene_out(scene, scene_totals(session, [scene.id]).get(scene.id, (0, 0)))
 
 
-def job_progress(job: Job) -> float:
+def job_progress(job: Job | Row[Any]) -> float:
     if job.state == JobState.SUCCEEDED:
         return 1.0
     if job.total_iterations <= 0:
@@ -49,7 +51,8 @@ def job_progress(job: Job) -> float:
     return max(0.0, min(1.0, job.iteration / job.total_iterations))
 
 
-def job_out(job: Job) -> JobOut:
+def job_out(job: Job | Row[Any]) -> JobOut:
+    """The response model of a job, from its ORM object or a row of the jobs table."""
     return JobOut(
         id=job.id,
         kind=job.kind,  # type: ignore[arg-type]
