@@ -1,7 +1,7 @@
 """Job-status latency under load, with and without a job training on the embedded queue.
 
     python -m bench.api_load [--clients 100] [--duration 20] [--with-job | --without-job]
-                             [--interval 0[,1...]] [--iterations 5000] [--size 64]
+                             [--interval 0[,1...]] [--wrk] [--iterations 5000] [--size 64]
                              [--views 24] [--repo DIR]
 
 Starts ``glint serve`` as it ships by default (no ``GLINT_REDIS_URL``: SQLite and the
@@ -17,11 +17,18 @@ poller's pace; clients start spread over the first interval):
 * ``with job``: the job trains (``--iterations``) throughout the window; the row says how
   many iterations it made meanwhile (``still running`` unless it finished too early).
 
+``--wrk`` runs the closed loops (interval 0) with ``wrk`` (C, one thread, ``--clients``
+connections; Debian package ``wrk``) instead: the asyncio client spends more CPU per
+request than the server and, sharing the cores, measured itself (it topped out near
+75 req/s on 2 cores where wrk drove the same server at 500). Paced runs (interval > 0)
+always use the asyncio client, which keeps up with 100 requests a second.
+
 Prints one Markdown row per mode and interval: requests/s, errors (non-200 answers and transport
-errors, e.g. timeouts), client p50/p90/p99/max latency and the server's own p99 (its
-``Server-Timing`` header, time in the app until the headers leave). Client and server
-share the machine's cores. ``--repo`` serves another checkout's code (e.g. a
-``git worktree`` of an older commit) with this benchmark's client.
+errors, e.g. timeouts), client p50/p90/p99/max latency, the server's own p99 (its
+``Server-Timing`` header, time in the app until the headers leave), the 1-minute load
+average when the window ended, and the client. Client and server share the machine's
+cores. ``--repo`` serves another checkout's code (e.g. a ``git worktree`` of an older
+commit) with this benchmark's client.
 """
 
 from __future__ import annotations
@@ -29,7 +36,9 @@ from __future__ import annotations
 import argparse
 import asyncio
 import io
+import json
 import os
+import shutil
 import socket
 import subprocess
 import sys
@@ -46,9 +55,38 @@ REPO = Path(__file__).resolve().parents[1]
 CLI = "import sys; from core.cli import main; sys.exit(main(sys.argv[1:]))"
 HEAD = (
     "| mode | clients | interval s | s | requests | errors | req/s | p50 ms | p90 ms | p99 ms "
-    "| max ms | server p99 ms | job |"
+    "| max ms | server p99 ms | job | load | client |"
 )
-RULE = "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|"
+RULE = "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|---:|---|"
+
+# wrk's script: the key's header, non-200 answers counted, each answer's Server-Timing kept;
+# done() prints one line of JSON for load_wrk
+WRK_LUA = """
+wrk.headers["Authorization"] = "Bearer " .. os.getenv("GLINT_BENCH_KEY")
+threads = {}
+function setup(thread) table.insert(threads, thread) end
+function init(args) non200 = 0; server_ms = {} end
+function response(status, headers, body)
+  if status ~= 200 then non200 = non200 + 1 end
+  local t = headers["server-timing"]
+  local d = t and t:match("dur=([%d%.]+)")
+  if d then server_ms[#server_ms + 1] = tonumber(d) end
+end
+function done(summary, latency, requests)
+  local bad, ms = 0, {}
+  for _, t in ipairs(threads) do
+    bad = bad + t:get("non200")
+    for _, v in ipairs(t:get("server_ms")) do ms[#ms + 1] = v end
+  end
+  local e = summary.errors
+  io.write(string.format(
+    'WRK {"requests": %d, "us": %d, "non200": %d, "socket": %d, "p50": %d, "p90": %d, '
+    .. '"p99": %d, "max": %d, "server_ms": [%s]}\\n',
+    summary.requests, summary.duration, bad, e.connect + e.read + e.write + e.timeout,
+    latency:percentile(50), latency:percentile(90), latency:percentile(99), latency.max,
+    table.concat(ms, ",")))
+end
+"""
 
 
 def free_port() -> int:
@@ -76,15 +114,25 @@ class Load:
     latencies: list[float]  # seconds, answered requests
     server_ms: list[float]
     job: str = "-"
+    # client p50/p90/p99/max in ms when the client gives only those (wrk), not latencies
+    quantiles: tuple[float, float, float, float] | None = None
+    load: float = float("nan")  # 1-minute load average as the window ended
+    client: str = "httpx"
 
     def row(self) -> str:
         ms = [t * 1e3 for t in self.latencies]
+        p50, p90, p99, top = self.quantiles or (
+            percentile(ms, 0.5),
+            percentile(ms, 0.9),
+            percentile(ms, 0.99),
+            max(ms, default=float("nan")),
+        )
         return (
             f"| {self.mode} | {self.clients} | {self.interval:g} | {self.seconds:.0f} | "
             f"{self.requests} | {self.errors} | {self.requests / self.seconds:.0f} | "
-            f"{percentile(ms, 0.5):.1f} | {percentile(ms, 0.9):.1f} | {percentile(ms, 0.99):.1f} | "
-            f"{max(ms, default=float('nan')):.1f} | {percentile(self.server_ms, 0.99):.1f} | "
-            f"{self.job} |"
+            f"{p50:.1f} | {p90:.1f} | {p99:.1f} | {top:.1f} | "
+            f"{percentile(self.server_ms, 0.99):.1f} | {self.job} | {self.load:.1f} | "
+            f"{self.client} |"
         )
 
 
@@ -248,6 +296,40 @@ async def load(
     return out
 
 
+def load_wrk(
+    url: str, key: str, job_id: str, clients: int, duration: float, timeout: float, mode: str
+) -> Load:
+    """A closed loop of ``clients`` connections by ``wrk`` (one thread) for ``duration`` s."""
+    with tempfile.NamedTemporaryFile("w", suffix=".lua", delete=False) as f:
+        f.write(WRK_LUA)
+    try:
+        done = subprocess.run(
+            [
+                "wrk",
+                "-t1",
+                f"-c{clients}",
+                f"-d{duration:g}s",
+                f"--timeout={timeout:g}s",
+                "-s",
+                f.name,
+                f"{url}/v1/jobs/{job_id}",
+            ],
+            env={**os.environ, "GLINT_BENCH_KEY": key},
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+    finally:
+        os.unlink(f.name)
+    line = next(x for x in done.stdout.splitlines() if x.startswith("WRK "))
+    w = json.loads(line[4:])
+    out = Load(mode, clients, 0.0, w["us"] / 1e6, w["requests"], w["non200"] + w["socket"], [], [])
+    out.server_ms = [float(v) for v in w["server_ms"]]
+    out.quantiles = (w["p50"] / 1e3, w["p90"] / 1e3, w["p99"] / 1e3, w["max"] / 1e3)
+    out.client = "wrk"
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     p.add_argument("--clients", type=int, default=100)
@@ -261,6 +343,11 @@ def main(argv: list[str] | None = None) -> int:
         help="seconds between one client's polls, comma-separated for several runs per mode "
         "(0: back to back)",
     )
+    p.add_argument(
+        "--wrk",
+        action="store_true",
+        help="closed loops (interval 0) with wrk instead of the asyncio client",
+    )
     p.add_argument("--iterations", type=int, default=5000, help="of the training job")
     p.add_argument("--size", type=int, default=64, help="synthetic scene image side, px")
     p.add_argument("--views", type=int, default=24, help="synthetic scene views")
@@ -268,6 +355,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--repo", type=Path, default=REPO, help="checkout whose code is served")
     args = p.parse_args(argv)
     intervals = [float(v) for v in args.interval.split(",")]
+    if args.wrk and shutil.which("wrk") is None:
+        p.error("--wrk needs wrk on PATH (Debian: apt-get install wrk)")
     modes = ["without job", "with job"]
     if args.with_job:
         modes = ["with job"]
@@ -297,18 +386,12 @@ def main(argv: list[str] | None = None) -> int:
                         )
                     for interval in intervals:
                         before = c.get(f"/v1/jobs/{job_id}").json()["iteration"]
-                        row = asyncio.run(
-                            load(
-                                server.url,
-                                key,
-                                job_id,
-                                args.clients,
-                                args.duration,
-                                args.timeout,
-                                m,
-                                interval,
-                            )
-                        )
+                        common = (server.url, key, job_id, args.clients, args.duration)
+                        if args.wrk and interval == 0:
+                            row = load_wrk(*common, args.timeout, m)
+                        else:
+                            row = asyncio.run(load(*common, args.timeout, m, interval))
+                        row.load = os.getloadavg()[0]
                         if m == "with job":
                             after = c.get(f"/v1/jobs/{job_id}").json()
                             state = after["state"]
