@@ -248,6 +248,7 @@ def summarize(ev: dict[str, Any]) -> dict[str, Any]:
         "train_seconds": ev.get("train_seconds"),
         "normal_error_deg": geo.get("normal_error_deg"),
         "depth_abs_error": geo.get("depth_abs_error"),
+        "depth_bias": geo.get("depth_bias"),
         "n_gaussians": ev.get("n_gaussians"),
         "envmap_psnr": env.get("psnr"),
         "envmap_log_correlation": env.get("log_correlation"),
@@ -287,6 +288,8 @@ def evaluation_section(ev: dict[str, Any]) -> str:
         f"| F-score @ 0.01 | {fmt_value(s['fscore'], 3)} |",
         f"| normal error (°) | {fmt_value(s['normal_error_deg'])} |",
         f"| depth error (abs) | {fmt_value(s['depth_abs_error'], 4)} |",
+        f"| depth bias (median of rendered − true; + is behind) "
+        f"| {fmt_value(s.get('depth_bias'), 4)} |",
         f"| env map PSNR after exposure fit (dB) | {fmt_value(s.get('envmap_psnr'))} |",
         f"| env map log-luminance correlation | {fmt_value(s.get('envmap_log_correlation'), 3)} |",
         f"| specular share of the colour | {fmt_value(s.get('specular_share'), 3)} |",

@@ -26,6 +26,8 @@ if TYPE_CHECKING:
 
 DEFAULT_CHAMFER_POINTS = 1_000_000  # the data README's sampling floor is stated for 1M
 SURFACE_ALPHA = 0.5  # pixels the model covers at least this much are scored
+# per-view errors against GT maps, averaged over views (depth_bias: median signed error)
+GEOMETRY_KEYS = ("normal_error_deg", "depth_abs_error", "depth_rel_error", "depth_bias")
 
 
 def nanmean(xs: Sequence[float]) -> float:
@@ -45,6 +47,7 @@ def frame_geometry_error(frame: Frame, gt: GroundTruth) -> dict[str, float]:
         "normal_error_deg": normal_angle_error_deg(n_world, gt.normal_world.to(n_world), mask),
         "depth_abs_error": de["abs"],
         "depth_rel_error": de["rel"],
+        "depth_bias": de["signed_median"],
     }
 
 
@@ -64,7 +67,7 @@ def geometry_errors(
     if not per_view:
         return None
     out: dict[str, Any] = {"views": len(per_view)}
-    for key in ("normal_error_deg", "depth_abs_error", "depth_rel_error"):
+    for key in GEOMETRY_KEYS:
         out[key] = nanmean([e[key] for e in per_view])
     return out
 

@@ -49,11 +49,18 @@ def normal_angle_error_deg(pred: Tensor, gt: Tensor, mask: Tensor) -> float:
 
 
 def depth_error(pred: Tensor, gt: Tensor, mask: Tensor) -> dict[str, float]:
-    """Mean absolute and mean relative z-depth error over ``mask``."""
+    """Mean absolute and mean relative z-depth error over ``mask``, and the median
+    signed error (rendered − true: positive = behind the true surface), which tells a
+    shifted surface from a noisy one."""
     if not bool(mask.any()):
-        return {"abs": math.nan, "rel": math.nan}
-    d = (pred[mask] - gt[mask]).abs()
-    return {"abs": float(d.mean()), "rel": float((d / gt[mask].abs().clamp_min(1e-12)).mean())}
+        return {"abs": math.nan, "rel": math.nan, "signed_median": math.nan}
+    e = pred[mask] - gt[mask]
+    d = e.abs()
+    return {
+        "abs": float(d.mean()),
+        "rel": float((d / gt[mask].abs().clamp_min(1e-12)).mean()),
+        "signed_median": float(e.median()),
+    }
 
 
 # -- LPIPS (only with local weights) --------------------------------------------

@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from core.evaluation.geometry import (
+    GEOMETRY_KEYS,
     SURFACE_ALPHA,
     frame_geometry_error,
     load_gt_points,
@@ -151,7 +152,7 @@ class ProgressEvaluator:
                 mv_in.append(rc["within_1px"])
         out = {"psnr": nanmean(ps), "ssim": nanmean(ss)}
         if self.has_gt_maps:
-            for key in ("normal_error_deg", "depth_abs_error", "depth_rel_error"):
+            for key in GEOMETRY_KEYS:
                 out[key] = nanmean([e[key] for e in errors])
         else:
             out.update(

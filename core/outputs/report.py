@@ -98,9 +98,10 @@ def metrics_table(rows: list[dict[str, Any]]) -> str:
         if any(r.get(key) is not None for r in rows)
     ]
     if any(r.get("depth_abs_error") is not None for r in rows):
-        cols.insert(
-            1 if cols and cols[0][0] == "cd_x100" else 0, ("depth_abs_error", "depth error", 4)
-        )
+        at = 1 if cols and cols[0][0] == "cd_x100" else 0
+        cols.insert(at, ("depth_abs_error", "depth error", 4))
+        if any(r.get("depth_bias") is not None for r in rows):
+            cols.insert(at + 1, ("depth_bias", "depth bias", 4))
     head = (
         "| iteration | train time (s) | eval time (s) | phase | Gaussians | loss "
         "| PSNR (dB) | SSIM |"
