@@ -31,23 +31,24 @@ def inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
     return (seen > 0) & (inside >= min_fraction * seen)
 
 
-def _refine_entry(
+def bisect_hull_boundary(
     origins: Tensor,
     dirs: Tensor,
-    lo: Tensor,
-    hi: Tensor,
+    outside: Tensor,
+    inside: Tensor,
     scene: Scene,
     min_fraction: float,
     bisections: int,
 ) -> Tensor:
-    """Ray parameters (M,) of the hull entry, by bisection between ``lo`` (outside the
-    hull, or equal to ``hi`` for a ray that starts inside) and ``hi`` (inside)."""
+    """Ray parameters (M,) of the hull boundary, by bisection between ``outside`` (a
+    parameter outside the hull, or equal to ``inside`` for a ray that starts inside) and
+    ``inside``; the inside end of the last bracket."""
     for _ in range(bisections):
-        mid = 0.5 * (lo + hi)
-        inside = inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
-        hi = torch.where(inside, mid, hi)
-        lo = torch.where(inside, lo, mid)
-    return hi
+        mid = 0.5 * (outside + inside)
+        hit = inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
+        inside = torch.where(hit, mid, inside)
+        outside = torch.where(hit, outside, mid)
+    return inside
 
 
 @torch.no_grad()
@@ -114,7 +115,9 @@ def visual_hull_points(
     if not dirs:
         return None
     O, D = torch.cat(origins), torch.cat(dirs)
-    t_hit = _refine_entry(O, D, torch.cat(t_out), torch.cat(t_in), scene, min_fraction, bisections)
+    t_hit = bisect_hull_boundary(
+        O, D, torch.cat(t_out), torch.cat(t_in), scene, min_fraction, bisections
+    )
     P = O + D * t_hit[:, None]
     C = torch.cat(cols)
     if P.shape[0] > n:

@@ -35,7 +35,7 @@ from torch import Tensor
 from core.render.depth_geometry import bilinear_lookup
 from core.scene.cameras import Camera
 from core.scene.views import Scene
-from core.training.init_points import inside_hull
+from core.training.init_points import bisect_hull_boundary, inside_hull
 
 MAX_POINTS = 40_000
 MARCH_SAMPLES = 64
@@ -155,28 +155,14 @@ def silhouette_points(
     if not dirs:
         return None
     O, D = torch.cat(origins), torch.cat(dirs)
-    t_in = _bisect(O, D, torch.cat(lo_out), torch.cat(lo_in), scene, min_fraction, bisections)
-    t_out = _bisect(O, D, torch.cat(hi_out), torch.cat(hi_in), scene, min_fraction, bisections)
+    t_in = bisect_hull_boundary(
+        O, D, torch.cat(lo_out), torch.cat(lo_in), scene, min_fraction, bisections
+    )
+    t_out = bisect_hull_boundary(
+        O, D, torch.cat(hi_out), torch.cat(hi_in), scene, min_fraction, bisections
+    )
     points = O + D * (0.5 * (t_in + t_out))[:, None]
     return SilhouettePoints(points, torch.cat(normals), torch.cat(source))
-
-
-def _bisect(
-    origins: Tensor,
-    dirs: Tensor,
-    outside: Tensor,
-    inside: Tensor,
-    scene: Scene,
-    min_fraction: float,
-    steps: int,
-) -> Tensor:
-    """Ray parameters of the hull boundary between an outside and an inside sample."""
-    for _ in range(steps):
-        mid = 0.5 * (outside + inside)
-        hit = inside_hull(origins + dirs * mid[:, None], scene, min_fraction)
-        inside = torch.where(hit, mid, inside)
-        outside = torch.where(hit, outside, mid)
-    return inside
 
 
 def _rim_normals(camera: Camera, dirs: Tensor, outward: Tensor) -> Tensor:

@@ -58,6 +58,17 @@ class PendingWrite(Protocol):
     def abort(self) -> None: ...
 
 
+def write_all(pending: PendingWrite, chunks: Iterable[bytes]) -> WriteResult:
+    """Write every chunk and commit; abort on any failure, so nothing half-written is kept."""
+    try:
+        for chunk in chunks:
+            pending.write(chunk)
+    except BaseException:
+        pending.abort()
+        raise
+    return pending.commit()
+
+
 class ArtifactStore(Protocol):
     """What the API and the runner need from a store."""
 

@@ -24,6 +24,7 @@ from api.service.store.base import (
     StoreUnavailableError,
     WriteResult,
     is_staging,
+    write_all,
 )
 from api.service.store.keys import check_key
 
@@ -99,14 +100,7 @@ class LocalStore:
         return _LocalPendingWrite(self, key)
 
     def put(self, key: str, chunks: Iterable[bytes]) -> WriteResult:
-        pending = self.begin(key)
-        try:
-            for chunk in chunks:
-                pending.write(chunk)
-        except BaseException:
-            pending.abort()
-            raise
-        return pending.commit()
+        return write_all(self.begin(key), chunks)
 
     def open(self, key: str) -> BinaryIO:
         return open(self.path(key), "rb")

@@ -24,7 +24,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from api.service.store.base import StoredObject, StoreUnavailableError, WriteResult
+from api.service.store.base import StoredObject, StoreUnavailableError, WriteResult, write_all
 from api.service.store.keys import check_key
 from api.service.store.mirror import LocalMirror
 from api.service.store.s3_client import NOT_FOUND_CODES, S3Location, error_code, unavailable
@@ -175,14 +175,7 @@ class S3Store:
         return _S3PendingWrite(self, check_key(key))
 
     def put(self, key: str, chunks: Iterable[bytes]) -> WriteResult:
-        pending = self.begin(key)
-        try:
-            for chunk in chunks:
-                pending.write(chunk)
-        except BaseException:
-            pending.abort()
-            raise
-        return pending.commit()
+        return write_all(self.begin(key), chunks)
 
     def upload_file(self, key: str, src: Path) -> str:
         """Upload a local file (one PUT, or parts for a large one); its new ETag.
