@@ -242,22 +242,13 @@ def probe_view_dependence(
     gt_diffs, model_diffs, pixels = [], [], 0
     for i, j in pairs:
         vi, vj = views[i], views[j]
-        gi, _ = render_gbuffer(
-            gaussians,
-            vi.camera,
-            sh_degree=0,
-            backend=cfg.backend,
-            antialiased=cfg.antialiased,
-            lowpass=cfg.lowpass_2d,
-        )
-        gj, _ = render_gbuffer(
-            gaussians,
-            vj.camera,
-            sh_degree=0,
-            backend=cfg.backend,
-            antialiased=cfg.antialiased,
-            lowpass=cfg.lowpass_2d,
-        )
+        gi, gj = (
+            render_gbuffer(
+                gaussians, v.camera, sh_degree=0, backend=cfg.backend,
+                antialiased=cfg.antialiased, lowpass=cfg.lowpass_2d,
+            )[0]
+            for v in (vi, vj)
+        )  # fmt: skip
         ok = gi.depth_valid & (gi.alpha > PROBE_MIN_ALPHA)
         if vi.mask is not None:
             ok = ok & (vi.mask > 0.9)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import json
 import socket
 import threading
 import time
@@ -205,3 +206,21 @@ def list_all(client: httpx.Client, path: str, **params: Any) -> list[dict[str, A
         offset += page["limit"]
         if not page["items"] or offset >= page["total"]:
             return items
+
+
+def job_events(client: httpx.Client, job_id: str, timeout: float = 180) -> list[tuple[str, dict]]:
+    """Every server-sent event of a job's stream as (event, data), until the server ends it."""
+    events: list[tuple[str, dict]] = []
+    with client.stream("GET", f"/v1/jobs/{job_id}/events", timeout=timeout) as r:
+        assert r.status_code == 200
+        assert r.headers["content-type"].startswith("text/event-stream")
+        kind, data = None, []
+        for line in r.iter_lines():
+            if line.startswith("event: "):
+                kind = line[7:]
+            elif line.startswith("data: "):
+                data.append(line[6:])
+            elif line == "" and kind:
+                events.append((kind, json.loads("\n".join(data))))
+                kind, data = None, []
+    return events

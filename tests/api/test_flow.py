@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import hashlib
-import json
 
 import httpx
 
 from tests.api.support import (
     TINY_CONFIG,
     LiveServer,
+    job_events,
     list_all,
     multipart,
     store_files,
@@ -17,23 +17,6 @@ from tests.api.support import (
 )
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
-
-
-def _sse_events(client: httpx.Client, job_id: str) -> list[tuple[str, dict]]:
-    events: list[tuple[str, dict]] = []
-    with client.stream("GET", f"/v1/jobs/{job_id}/events") as r:
-        assert r.status_code == 200
-        assert r.headers["content-type"].startswith("text/event-stream")
-        kind, data = None, []
-        for line in r.iter_lines():
-            if line.startswith("event: "):
-                kind = line[7:]
-            elif line.startswith("data: "):
-                data.append(line[6:])
-            elif line == "" and kind:
-                events.append((kind, json.loads("\n".join(data))))
-                kind, data = None, []
-    return events
 
 
 def test_create_upload_commit_train_download(any_server: LiveServer, scene) -> None:
@@ -96,7 +79,7 @@ def test_create_upload_commit_train_download(any_server: LiveServer, scene) -> N
             assert 0 < j["progress"] <= 1 and j["phase"]
 
         # the event stream of a finished job: its last state, then the end marker
-        events = _sse_events(c, job_id)
+        events = job_events(c, job_id)
         assert events[0][0] == "job" and events[0][1]["state"] == "succeeded"
         assert events[-1] == ("end", {"state": "succeeded"})
 

@@ -10,7 +10,7 @@ import threading
 import httpx
 import pytest
 
-from tests.api.support import TINY_CONFIG, LiveServer, list_all, multipart, wait_for
+from tests.api.support import TINY_CONFIG, LiveServer, job_events, list_all, multipart, wait_for
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
 # long enough that the cancel lands mid-run even on a fast machine
@@ -35,22 +35,6 @@ def _wait_terminal(client: httpx.Client, job_id: str) -> dict:
     return wait_for(
         lambda: (j := _job(client, job_id))["state"] in TERMINAL and j, timeout=150, every=0.2
     )
-
-
-def _follow(client: httpx.Client, job_id: str) -> list[tuple[str, dict]]:
-    """Every SSE event of a job until the server ends the stream."""
-    out, kind, data = [], None, []
-    with client.stream("GET", f"/v1/jobs/{job_id}/events", timeout=180) as r:
-        assert r.status_code == 200
-        for line in r.iter_lines():
-            if line.startswith("event: "):
-                kind = line[7:]
-            elif line.startswith("data: "):
-                data.append(line[6:])
-            elif not line and kind:
-                out.append((kind, json.loads("".join(data))))
-                kind, data = None, []
-    return out
 
 
 def test_cancel_queued_job_is_immediate(server: LiveServer, client, ready_scene) -> None:
@@ -85,7 +69,7 @@ def test_cancel_running_then_resume_continues(server: LiveServer, client, ready_
     r = client.post(f"/v1/jobs/{job_id}/resume")
     assert r.status_code == 200 and r.json()["state"] == "queued"
     assert r.json()["cancel_requested"] is False
-    events = _follow(client, job_id)
+    events = job_events(client, job_id)
     assert events[-1] == ("end", {"state": "succeeded"})
     running = [e for kind, e in events if kind == "job" and e["state"] == "running"]
     assert running, "the stream showed the job running"

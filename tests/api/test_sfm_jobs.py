@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import json
 import typing
 from pathlib import Path
 
@@ -22,7 +21,7 @@ from api.schemas import SfmConfig
 from api.service.models import Job
 from api.service.runner import run_job
 from tests.api.archives import make_zip
-from tests.api.support import TINY_CONFIG, LiveServer, list_all, multipart, wait_for
+from tests.api.support import TINY_CONFIG, LiveServer, job_events, list_all, multipart, wait_for
 from tests.photo_capture import VIEWS, photo_files, stray_files
 
 TERMINAL = {"succeeded", "failed", "cancelled"}
@@ -56,23 +55,6 @@ def _sha(files: list[tuple[str, bytes]]) -> dict[str, str]:
     return {p: hashlib.sha256(b).hexdigest() for p, b in files}
 
 
-def _events(c: httpx.Client, job_id: str) -> list[dict]:
-    """Every ``job`` event of the job's stream, until it ends."""
-    out, kind, data = [], None, []
-    with c.stream("GET", f"/v1/jobs/{job_id}/events", timeout=180) as r:
-        assert r.status_code == 200
-        for line in r.iter_lines():
-            if line.startswith("event: "):
-                kind = line[7:]
-            elif line.startswith("data: "):
-                data.append(line[6:])
-            elif line == "" and kind:
-                if kind == "job":
-                    out.append(json.loads("\n".join(data)))
-                kind, data = None, []
-    return out
-
-
 def _job(c: httpx.Client, job_id: str) -> dict:
     return dict(c.get(f"/v1/jobs/{job_id}").json())
 
@@ -102,7 +84,7 @@ def test_photos_without_poses_train_through_an_sfm_phase(
         "options": {**SfmConfig().model_dump(), "matching": "exhaustive"},
         "result": None,
     }
-    events = _events(c, job["id"])
+    events = [d for k, d in job_events(c, job["id"]) if k == "job"]
     done = events[-1]
     assert done["state"] == "succeeded", done["error"]
 
