@@ -168,6 +168,12 @@ class Ablation(_Strict):
         description="False: two-sided splats (the paper's); True: each splat learns which "
         "side it is seen from and views behind it cull it (core/render/orientation.py)",
     )
+    grazing_opacity: bool = Field(
+        True,
+        description="False: opacity is the same from every angle (the paper's); True: each "
+        "splat learns how much to fade when seen nearly edge-on, so splats piled up along "
+        "grazing rays stop blurring silhouettes outwards (core/render/grazing.py)",
+    )
 
 
 class Evaluation(_Strict):

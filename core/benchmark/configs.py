@@ -1,6 +1,6 @@
-"""The benchmark's configurations: the paper's Table 3 ablations, Glint's two additions
-switched off (silhouette points, one-sided splats; both off = the paper's full model)
-and an SH-only baseline."""
+"""The benchmark's configurations: the paper's Table 3 ablations, Glint's additions
+switched off (silhouette points, one-sided splats, grazing opacity; all off = the
+paper's full model) and an SH-only baseline."""
 
 from __future__ import annotations
 
@@ -20,13 +20,15 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "no_multi": {"multi_view": False},
     "no_silhouette": {"silhouette": False},
     "two_sided": {"one_sided": False},
-    "paper": {"silhouette": False, "one_sided": False},
+    "no_grazing": {"grazing_opacity": False},
+    "paper": {"silhouette": False, "one_sided": False, "grazing_opacity": False},
     "sh_only": {
         "deferred_shading": False,
         "single_view": False,
         "multi_view": False,
         "silhouette": False,
         "one_sided": False,
+        "grazing_opacity": False,
     },
 }
 LABELS = {
@@ -37,8 +39,9 @@ LABELS = {
     "no_multi": "w/o L_multi",
     "no_silhouette": "w/o silhouette points",
     "two_sided": "w/o one-sided splats",
-    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats)",
-    "sh_only": "SH only (no deferred, no L_single, no L_multi; two-sided, no silhouette points)",
+    "no_grazing": "w/o grazing opacity",
+    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats, grazing opacity)",
+    "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
 TABLE_ORDER = (
@@ -49,6 +52,7 @@ TABLE_ORDER = (
     "no_multi",
     "no_silhouette",
     "two_sided",
+    "no_grazing",
     "paper",
     "full",
 )

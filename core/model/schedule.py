@@ -47,6 +47,7 @@ class Phase:
     antialiased: bool = True
     silhouette: bool = False  # the silhouette-point depth loss (core.training.silhouette)
     one_sided: bool = False  # cull splats seen from behind (core.render.orientation)
+    grazing: bool = False  # learned edge-on opacity fade (core.render.grazing)
     lowpass: float = 0.3  # px² added to each splat's 2D covariance (TrainConfig.lowpass_2d)
 
 
@@ -130,5 +131,6 @@ def phase_at(
         antialiased=cfg.antialiased,
         silhouette=geo and ab.silhouette and silhouette_planned and not paused,
         one_sided=ab.one_sided,
+        grazing=ab.grazing_opacity,
         lowpass=cfg.lowpass_2d,
     )

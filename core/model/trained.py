@@ -28,9 +28,9 @@ from core.model.schedule import Phase, phase_at
 from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer, render_gbuffer_tensors
-from core.render.orientation import facing
 from core.render.raster import resolve_backend
 from core.render.shading import deferred_shade
+from core.render.view_opacity import view_opacity_scale
 from core.scene.cameras import Camera, Intrinsics
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -225,7 +225,10 @@ class TrainedModel:
         sh_degree = phase.sh_degree if wanted & COLOURED else 0
         if self._static is not None:
             st = self._static
-            cull = facing(self.gaussians, camera, st["normals"]) if phase.one_sided else None
+            cull = view_opacity_scale(
+                self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing,
+                normals=st["normals"],
+            )  # fmt: skip
             colors = st.get("colors")
             if colors is None:
                 colors = self.gaussians.colors(camera, sh_degree)
@@ -236,7 +239,9 @@ class TrainedModel:
                 antialiased=phase.antialiased, lowpass=phase.lowpass,
             )  # fmt: skip
         else:
-            cull = facing(self.gaussians, camera) if phase.one_sided else None
+            cull = view_opacity_scale(
+                self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing
+            )
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,

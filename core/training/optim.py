@@ -14,6 +14,7 @@ from torch import Tensor
 
 from core.config import TrainConfig
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
+from core.render.grazing import GRAZE_KEY
 
 
 def make_optimizers(
@@ -28,6 +29,7 @@ def make_optimizers(
         "sh_dc": lr.sh_dc,
         "sh_rest": lr.sh_rest,
         "refl_logits": lr.refl,
+        GRAZE_KEY: lr.opacity,
     }
     return {
         k: torch.optim.Adam([g.params[k]], lr=rates[k], eps=1e-15, betas=(0.9, 0.999))

@@ -36,9 +36,11 @@ from core.outputs.report import MetricsLog
 from core.render.envmap import EnvMap
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
-from core.render.orientation import add_orientation_state, facing, record_visibility
+from core.render.grazing import add_grazing_state
+from core.render.orientation import add_orientation_state, record_visibility
 from core.render.raster import resolve_backend
 from core.render.shading import ShadeResult, deferred_shade
+from core.render.view_opacity import view_opacity_scale
 from core.scene.views import Scene, View
 from core.training.budget import TimeBudget
 from core.training.densify import DensifyStrategy
@@ -201,6 +203,8 @@ class Trainer:
         self.gaussians = g.to(self.device)
         if self.cfg.ablation.one_sided:
             add_orientation_state(self.gaussians)
+        if self.cfg.ablation.grazing_opacity:
+            add_grazing_state(self.gaussians)
         if self.plan.envmap_possible(self.cfg):
             self.envmap = EnvMap(int(self.plan.envmap_resolution.value)).to(self.device)
         self.optimizers = self._make_optimizers()
@@ -309,6 +313,8 @@ class Trainer:
             p.requires_grad_(k not in UNTRAINED_KEYS)
         if self.cfg.ablation.one_sided:
             add_orientation_state(self.gaussians)  # a run from before one-sided splats
+        if self.cfg.ablation.grazing_opacity:
+            add_grazing_state(self.gaussians)  # a run from before grazing opacity
         self.plan = ScenePlan.from_dict(x["plan"])
         self.envmap = envmap_from_state(x.get("envmap"), self.device)
         self.optimizers = self._make_optimizers()
@@ -384,7 +390,9 @@ class Trainer:
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
-        cull = facing(self.gaussians, view.camera) if phase.one_sided else None
+        cull = view_opacity_scale(
+            self.gaussians, view.camera, one_sided=phase.one_sided, grazing=phase.grazing
+        )
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
             absgrad=cfg.densify.absgrad, opacity_scale=cull,
@@ -416,7 +424,9 @@ class Trainer:
             gb_n, _ = render_gbuffer(
                 self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass,
-                opacity_scale=facing(self.gaussians, nview.camera) if phase.one_sided else None,
+                opacity_scale=view_opacity_scale(
+                    self.gaussians, nview.camera, one_sided=phase.one_sided, grazing=phase.grazing
+                ),
             )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
             if nview.mask is not None:
