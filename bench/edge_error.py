@@ -28,8 +28,8 @@ from scipy.spatial import cKDTree
 
 from core.evaluation.geometry import load_gt_points
 from core.model.trained import TrainedModel
-from core.render.orientation import facing
 from core.render.raster.projection import ALPHA_MIN, covariances_from, project_gaussians
+from core.render.view_opacity import view_opacity_scale
 from core.scene.formats import load_scene
 
 RINGS = ("out 1", "out 1-3", "out >3", "in 1", "in 1-3", "in >3")
@@ -124,9 +124,9 @@ def halo_splats(model: TrainedModel, views, root: Path) -> dict:
         ring = ring_masks(cov)["out 1"]
         proj = project_gaussians(mu, covs, v.camera, eps2d=phase.lowpass)
         o = op * (proj.compensation if phase.antialiased else 1.0)
-        cull = facing(g, v.camera) if phase.one_sided else None
-        if cull is not None:
-            o = o * cull.detach().double().cpu().reshape(-1)
+        scale = view_opacity_scale(g, v.camera, one_sided=phase.one_sided, grazing=phase.grazing)
+        if scale is not None:
+            o = o * scale.detach().double().cpu().reshape(-1)
         ids = ((proj.radii > 0) & (o > ALPHA_MIN)).nonzero()[:, 0]
         ys, xs = np.nonzero(ring)
         pix = torch.from_numpy(np.stack([xs + 0.5, ys + 0.5], -1))
