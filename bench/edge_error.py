@@ -119,9 +119,11 @@ def halo_splats(model: TrainedModel, views, root: Path) -> dict:
         _, nearest = cKDTree(gt["points"]).query(mu.numpy(), k=1)
         gt_normal = torch.from_numpy(gt["normals"][nearest])
     cols: dict[str, list[np.ndarray]] = {k: [] for k in ("w", "edge", "ray", "sigma", "op", "nerr")}
+    ring_pixels = 0
     for v in views:
         cov = v.mask.double().numpy()
         ring = ring_masks(cov)["out 1"]
+        ring_pixels += int(ring.sum())
         proj = project_gaussians(mu, covs, v.camera, eps2d=phase.lowpass)
         o = op * (proj.compensation if phase.antialiased else 1.0)
         scale = view_opacity_scale(g, v.camera, one_sided=phase.one_sided, grazing=phase.grazing)
@@ -155,12 +157,7 @@ def halo_splats(model: TrainedModel, views, root: Path) -> dict:
             cols["nerr"].append(torch.rad2deg(torch.arccos(cosn)))
     arr = {k: np.concatenate([np.asarray(x) for x in v]) for k, v in cols.items() if v}
     w = arr.pop("w")
-    out = {
-        "contributors_per_ring_pixel": float(
-            len(w)
-            / max(1, sum(int(ring_masks(v.mask.double().numpy())["out 1"].sum()) for v in views))
-        )
-    }
+    out = {"contributors_per_ring_pixel": len(w) / max(1, ring_pixels)}
     names = {"edge": "centre to silhouette (px, + out)", "ray": "normal to view ray (°)",
              "sigma": "footprint minor σ (px)", "op": "effective opacity",
              "nerr": "normal error (°)"}  # fmt: skip
