@@ -174,6 +174,13 @@ class Ablation(_Strict):
         "splat learns how much to fade when seen nearly edge-on, so splats piled up along "
         "grazing rays stop blurring silhouettes outwards (core/render/grazing.py)",
     )
+    same_surface_normals: bool = Field(
+        True,
+        description="False: L_single's depth normals by central differences everywhere (the "
+        "paper's); True: one-sided differences across depth jumps, so a pixel at a "
+        "self-occlusion edge is not pulled toward a normal of neither surface "
+        "(core/render/depth_geometry.py)",
+    )
 
 
 class Evaluation(_Strict):

@@ -92,6 +92,75 @@ def test_normals_from_depth_recover_tilted_plane():
     assert not ok2[10, 11] and not ok2[11, 10] and ok2[12, 12]
 
 
+def _occlusion_step(cam: Camera) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Left half: a plane tilted 35° about y at depth ~3; right half: a wall at depth 6
+    facing the camera. Returns (depth, left normal, right normal)."""
+    n_front = rotmat_y(35.0) @ torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    n_back = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    front = _plane_depth(cam, n_front, torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))
+    back = torch.full_like(front, 6.0)
+    depth = front.clone()
+    depth[:, 16:] = back[:, 16:]
+    return depth, n_front, n_back
+
+
+def test_same_surface_normals_across_a_depth_jump():
+    """At a self-occlusion edge the central difference mixes both surfaces (its normal is
+    neither's); one-sided differences give each side's own normal, and on a smooth plane
+    they change nothing."""
+    cam = identity_camera(32)
+    depth, n_front, n_back = _occlusion_step(cam)
+    valid = torch.ones(32, 32, dtype=torch.bool)
+    central, ok = normals_from_depth(depth, valid, cam)
+    same, ok_same = normals_from_depth(depth, valid, cam, jump_ratio=2.0)
+    assert torch.equal(ok, ok_same)
+    rows = slice(1, 31)
+    for col, n_true in ((15, n_front), (16, n_back)):
+        cos_central = (central[rows, col] @ n_true).min().item()
+        cos_same = (same[rows, col] @ n_true).min().item()
+        assert cos_central < math.cos(math.radians(30))  # the mixed normal is far off
+        assert cos_same > 1 - 1e-9  # the pixel's own surface exactly
+    # Away from the jump (and on a plane seen whole) nothing changes.
+    torch.testing.assert_close(same[rows, 2:14], central[rows, 2:14], atol=0, rtol=0)
+    plane = _plane_depth(cam, n_front, torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64))
+    a, _ = normals_from_depth(plane, valid, cam)
+    b, _ = normals_from_depth(plane, valid, cam, jump_ratio=2.0)
+    torch.testing.assert_close(a, b, atol=0, rtol=0)
+
+
+def test_same_surface_normals_on_a_sphere_match_central_differences():
+    """A smooth curved surface (no jump) keeps its central differences: the switch must
+    not cost accuracy where Eq. 10 is right."""
+    cam = identity_camera(48)
+    rays = cam.camera_rays(torch.float64)
+    c, r = torch.tensor([0.0, 0.0, 4.0], dtype=torch.float64), 1.6
+    b = rays @ c
+    disc = b**2 - (rays * rays).sum(-1) * (c @ c - r * r)
+    hit = disc > 0
+    depth = torch.where(hit, (b - disc.clamp_min(0).sqrt()) / (rays * rays).sum(-1), 0.0)
+    a, ok = normals_from_depth(depth, hit, cam)
+    s, _ = normals_from_depth(depth, hit, cam, jump_ratio=2.0)
+    # Where the sphere is seen at up to ~60° the steps agree within 2×.
+    P = depth[..., None] * rays
+    n_true = (P - c) / r
+    facing = hit & ((n_true * -P).sum(-1) / P.norm(dim=-1) > 0.5) & ok
+    assert int(facing.sum()) > 300
+    torch.testing.assert_close(s[facing], a[facing], atol=0, rtol=0)
+
+
+def test_single_view_loss_same_surface_at_an_occlusion_edge():
+    """Rendered normals that are right on both sides of an occlusion edge: the central
+    target penalises them at the edge, the same-surface target does not."""
+    cam = identity_camera(32)
+    depth, n_front, n_back = _occlusion_step(cam)
+    rendered = torch.empty(32, 32, 3, dtype=torch.float64)
+    rendered[:, :16] = n_front
+    rendered[:, 16:] = n_back
+    valid = torch.ones(32, 32, dtype=torch.bool)
+    assert single_view_loss(rendered, depth, valid, cam).item() > 1e-3
+    assert single_view_loss(rendered, depth, valid, cam, same_surface=True).item() < 1e-12
+
+
 def test_single_view_loss_zero_when_consistent_one_when_perpendicular():
     cam = identity_camera(16)
     n = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)

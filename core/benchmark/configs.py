@@ -21,7 +21,13 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "no_silhouette": {"silhouette": False},
     "two_sided": {"one_sided": False},
     "no_grazing": {"grazing_opacity": False},
-    "paper": {"silhouette": False, "one_sided": False, "grazing_opacity": False},
+    "central_normals": {"same_surface_normals": False},
+    "paper": {
+        "silhouette": False,
+        "one_sided": False,
+        "grazing_opacity": False,
+        "same_surface_normals": False,
+    },
     "sh_only": {
         "deferred_shading": False,
         "single_view": False,
@@ -29,6 +35,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "silhouette": False,
         "one_sided": False,
         "grazing_opacity": False,
+        "same_surface_normals": False,
     },
 }
 LABELS = {
@@ -40,7 +47,9 @@ LABELS = {
     "no_silhouette": "w/o silhouette points",
     "two_sided": "w/o one-sided splats",
     "no_grazing": "w/o grazing opacity",
-    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats, grazing opacity)",
+    "central_normals": "w/o same-surface depth normals",
+    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats, grazing opacity, "
+    "same-surface depth normals)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
@@ -53,6 +62,7 @@ TABLE_ORDER = (
     "no_silhouette",
     "two_sided",
     "no_grazing",
+    "central_normals",
     "paper",
     "full",
 )

@@ -412,8 +412,9 @@ class Trainer:
         if phase.single_view and cfg.loss.single_view > 0:
             weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
             terms["single_view"] = cfg.loss.single_view * single_view_loss(
-                gb.normal, depth, valid, view.camera, weight
-            )
+                gb.normal, depth, valid, view.camera, weight,
+                same_surface=cfg.ablation.same_surface_normals,
+            )  # fmt: skip
         if phase.silhouette and self.silhouette is not None:
             terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
                 vi, view.camera, depth, valid
