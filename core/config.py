@@ -181,6 +181,12 @@ class Ablation(_Strict):
         "self-occlusion edge is not pulled toward a normal of neither surface "
         "(core/render/depth_geometry.py)",
     )
+    facing_depth: bool = Field(
+        True,
+        description="False: L_single and L_multi use every covered pixel (the paper's); "
+        "True: only pixels whose surface faces the view within 60° (Eq. 8's depth is "
+        "ill-conditioned edge-on; core/render/depth_geometry.py)",
+    )
 
 
 class Evaluation(_Strict):

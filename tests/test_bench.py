@@ -242,3 +242,14 @@ def test_bench_configs_take_a_time_budget() -> None:
     assert cfg.time_budget == 90.0 and cfg.iterations == 30_000
     both = bench_config("sh_only", 500, 0.5, time_budget=60.0)
     assert (both.iterations, both.time_budget) == (500, 60.0)
+
+
+def test_paper_row_switches_off_every_addition_and_full_keeps_them() -> None:
+    additions = ("silhouette", "one_sided", "grazing_opacity", "same_surface_normals",
+                 "facing_depth")  # fmt: skip
+    paper, full = bench_config("paper", 300, 0.5), bench_config("full", 300, 0.5)
+    for name in additions:
+        assert getattr(paper.ablation, name) is False, name
+        assert getattr(full.ablation, name) is True, name
+    assert bench_config("all_angles", 300, 0.5).ablation.facing_depth is False
+    assert bench_config("central_normals", 300, 0.5).ablation.same_surface_normals is False

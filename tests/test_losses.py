@@ -271,3 +271,27 @@ def test_multi_view_error_weighting_is_pgsrs_exp_weight():
     assert st == st2 and 0 < weighted.item() < plain.item()
     # exp(-e)·e ≥ e·exp(-1) for e ≤ 1 px, so the weighted mean stays above that bound.
     assert weighted.item() >= plain.item() * math.exp(-1.0) - 1e-12
+
+
+def test_facing_view_by_angle_to_the_pixel_ray():
+    from core.render.depth_geometry import DEPTH_FACING_DEG, facing_view
+
+    cam = identity_camera(8)
+    rays = cam.camera_rays(torch.float64)
+    r = rays / rays.norm(dim=-1, keepdim=True)
+    # a unit vector perpendicular to each ray, to tilt the normal away from it
+    perp = torch.linalg.cross(r, torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64).expand_as(r))
+    perp = perp / perp.norm(dim=-1, keepdim=True)
+
+    def tilted(deg: float, scale: float = 1.0) -> torch.Tensor:
+        a = math.radians(deg)
+        return scale * (-math.cos(a) * r + math.sin(a) * perp)
+
+    assert DEPTH_FACING_DEG == 60.0
+    assert facing_view(tilted(0.0), cam).all()
+    assert facing_view(tilted(59.0, 0.3), cam).all()  # blended normals are not unit
+    assert facing_view(-tilted(59.0), cam).all()  # either side
+    assert not facing_view(tilted(61.0), cam).any()
+    assert not facing_view(tilted(90.0), cam).any()
+    assert not facing_view(torch.zeros(8, 8, 3, dtype=torch.float64), cam).any()
+    assert facing_view(tilted(70.0), cam, max_deg=75.0).all()

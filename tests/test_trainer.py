@@ -203,3 +203,41 @@ def test_resuming_a_finished_run_records_its_last_row_once(tiny_scene, tmp_path)
     assert again.train().iteration == 20
     its = [r["iteration"] for r in read_metrics(tmp_path / "metrics.jsonl")]
     assert its == sorted(set(its)) and its[-1] == 20
+
+
+@pytest.mark.parametrize("facing", [True, False])
+def test_depth_losses_use_only_pixels_facing_the_view(tiny_scene, tmp_path, monkeypatch, facing):
+    """With ablation.facing_depth, L_single and L_multi see only pixels whose rendered
+    normal is within DEPTH_FACING_DEG of the ray (Eq. 8's depth is ill-conditioned
+    edge-on); without it, every covered pixel, grazing ones included."""
+    import core.training.trainer as tr
+    from core.render.depth_geometry import facing_view
+
+    seen: dict[str, list] = {"single": [], "multi": []}
+    real_single, real_multi = tr.single_view_loss, tr.multi_view_loss
+
+    def single(normal, depth, valid, camera, weight=None, **kw):
+        seen["single"].append((valid.clone(), facing_view(normal, camera)))
+        return real_single(normal, depth, valid, camera, weight, **kw)
+
+    def multi(depth_ref, valid_ref, *args, **kw):
+        seen["multi"].append(valid_ref.clone())
+        return real_multi(depth_ref, valid_ref, *args, **kw)
+
+    monkeypatch.setattr(tr, "single_view_loss", single)
+    monkeypatch.setattr(tr, "multi_view_loss", multi)
+    cfg = config_from_dict({
+        **TINY, "iterations": 40, "ablation": {"facing_depth": facing},
+        "loss": {"multiview_max_angle_deg": 90.0},  # 24 views: give each a neighbour
+    })  # fmt: skip
+    t = Trainer(tiny_scene, cfg, tmp_path)
+    t.setup(resume=False)
+    t.train()
+    assert seen["single"] and seen["multi"]
+    grazing = 0
+    for valid, faces in seen["single"]:
+        grazing += int((valid & ~faces).sum())
+        if facing:
+            assert not bool((valid & ~faces).any())
+    # a sphere always shows a rim seen edge-on: the switch has something to leave out
+    assert (grazing == 0) if facing else (grazing > 0)

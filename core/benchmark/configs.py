@@ -22,11 +22,13 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "two_sided": {"one_sided": False},
     "no_grazing": {"grazing_opacity": False},
     "central_normals": {"same_surface_normals": False},
+    "all_angles": {"facing_depth": False},
     "paper": {
         "silhouette": False,
         "one_sided": False,
         "grazing_opacity": False,
         "same_surface_normals": False,
+        "facing_depth": False,
     },
     "sh_only": {
         "deferred_shading": False,
@@ -36,6 +38,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "one_sided": False,
         "grazing_opacity": False,
         "same_surface_normals": False,
+        "facing_depth": False,
     },
 }
 LABELS = {
@@ -48,8 +51,9 @@ LABELS = {
     "two_sided": "w/o one-sided splats",
     "no_grazing": "w/o grazing opacity",
     "central_normals": "w/o same-surface depth normals",
-    "paper": "PGSR-DR as published (w/o silhouette points, two-sided splats, grazing opacity, "
-    "same-surface depth normals)",
+    "all_angles": "w/o facing-only depth losses",
+    "paper": "PGSR-DR as published (two-sided splats; w/o silhouette points, grazing opacity, "
+    "same-surface depth normals, facing-only depth losses)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
@@ -63,6 +67,7 @@ TABLE_ORDER = (
     "two_sided",
     "no_grazing",
     "central_normals",
+    "all_angles",
     "paper",
     "full",
 )

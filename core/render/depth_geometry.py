@@ -7,11 +7,33 @@ so they live below both.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from core.scene.cameras import Camera
+
+# Depth-based losses trust a pixel only where its surface faces the view within this
+# angle. Why: Eq. 8's depth d = D / (N·r̃) turns a normal error δ into a relative depth
+# error of about tan θ · δ (1.7× at 60°, 5.7× at 80°), Eq. 10's normals from the
+# differences of such depths inherit it, and a point seen edge-on reprojects near the
+# neighbour's silhouette where its depth is mixed with the background. Measured on
+# spot_plastic at 3000 its (2026-11-25): L_single and L_multi over every covered pixel
+# leave the silhouettes' alpha twice as wide as with the centre depth of Eq. 5 and cost
+# 0.8 dB of held-out PSNR at the same Chamfer distance.
+DEPTH_FACING_DEG = 60.0
+
+
+def facing_view(normal: Tensor, camera: Camera, max_deg: float = DEPTH_FACING_DEG) -> Tensor:
+    """(H, W) bool: the pixel's blended normal (camera space, any length, any sign) is
+    within ``max_deg`` of the ray through it. A zero normal faces nothing."""
+    rays = camera.camera_rays(normal.dtype, normal.device)
+    n = normal.detach()
+    dot = (n * rays).sum(-1).abs()
+    norm = n.norm(dim=-1) * rays.norm(dim=-1)
+    return (dot >= math.cos(math.radians(max_deg)) * norm) & (norm > 0)
 
 
 def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from core.render.depth_geometry import bilinear_lookup
+from core.render.depth_geometry import DEPTH_FACING_DEG, bilinear_lookup
 from core.scene.cameras import Camera
 from core.scene.views import Scene
 from core.training.init_points import bisect_hull_boundary, inside_hull
@@ -42,7 +42,7 @@ MARCH_SAMPLES = 64
 BISECTIONS = 8
 # A view uses the points whose normal is within this angle of the direction to it: the
 # planar depth of a surface seen at a grazing angle is ill-conditioned (1/cos).
-FACING_DEG = 60.0
+FACING_DEG = DEPTH_FACING_DEG
 # A point rendered this many pixel footprints behind the surface in front of it is
 # hidden there (another part of the object is in the way), not a depth error.
 OCCLUDED_PX = 3.0

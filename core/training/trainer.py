@@ -33,6 +33,7 @@ from core.model.trained import (
     scene_record,
 )
 from core.outputs.report import MetricsLog
+from core.render.depth_geometry import facing_view
 from core.render.envmap import EnvMap
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
@@ -409,6 +410,11 @@ class Trainer:
             valid = valid & (view.mask > 0.5)
         if phase.one_sided:
             record_visibility(self.gaussians, view.camera, depth.detach(), valid)
+        # The silhouette term picks its own facing points; L_single and L_multi trust
+        # the depth only where the surface faces the view (DEPTH_FACING_DEG).
+        sil_valid = valid
+        if cfg.ablation.facing_depth:
+            valid = valid & facing_view(gb.normal, view.camera)
         if phase.single_view and cfg.loss.single_view > 0:
             weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
             terms["single_view"] = cfg.loss.single_view * single_view_loss(
@@ -417,7 +423,7 @@ class Trainer:
             )  # fmt: skip
         if phase.silhouette and self.silhouette is not None:
             terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
-                vi, view.camera, depth, valid
+                vi, view.camera, depth, sil_valid
             )
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
@@ -430,6 +436,8 @@ class Trainer:
                 ),
             )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
+            if cfg.ablation.facing_depth:
+                v_n = v_n & facing_view(gb_n.normal, nview.camera)
             if nview.mask is not None:
                 v_n = v_n & (nview.mask > 0.5)
             mv, _ = multi_view_loss(
