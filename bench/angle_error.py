@@ -13,7 +13,6 @@ cos θ = |n_gt · ray| and reports the blended w_r and specular colour per bin.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 from pathlib import Path
@@ -22,8 +21,8 @@ import numpy as np
 import torch
 from scipy import ndimage
 
+from bench.trained_run import open_run_and_scene, run_scene_parser
 from core.model.trained import TrainedModel
-from core.scene.formats import load_scene
 from core.scene.groundtruth import load_ground_truth
 
 COS_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0001)
@@ -82,16 +81,10 @@ def bin_by_cos(
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--scene", type=Path, required=True)
+    ap = run_scene_parser(__doc__)
     ap.add_argument("--inset", type=float, default=1.5, help="pixels from the silhouette left out")
     args = ap.parse_args(argv)
-    torch.set_grad_enabled(False)
-    model = TrainedModel.open(args.run)
-    scene = load_scene(args.scene)
+    model, scene = open_run_and_scene(args)
     print(json.dumps(measure(model, scene, args.scene, args.inset), indent=2))
 
 

@@ -16,17 +16,15 @@ pixel's depth) marked.
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import json
 from pathlib import Path
 
 import numpy as np
-import torch
 
+from bench.trained_run import open_run_and_scene, run_scene_parser
 from core.model.trained import TrainedModel
 from core.render.depth_geometry import normals_from_depth
-from core.scene.formats import load_scene
 from core.scene.groundtruth import load_ground_truth
 from core.training.losses import edge_weight
 
@@ -105,11 +103,7 @@ def measure(
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(
-        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
-    )
-    ap.add_argument("run", type=Path)
-    ap.add_argument("--scene", type=Path, required=True)
+    ap = run_scene_parser(__doc__)
     ap.add_argument("--split", choices=("train", "test"), default="train")
     ap.add_argument("--jump", type=float, default=0.02, help="relative GT depth jump")
     ap.add_argument(
@@ -118,9 +112,7 @@ def main(argv: list[str] | None = None) -> None:
         "(the trainer uses SAME_SURFACE_JUMP_RATIO; default: central differences)",
     )  # fmt: skip
     args = ap.parse_args(argv)
-    torch.set_grad_enabled(False)
-    model = TrainedModel.open(args.run)
-    scene = load_scene(args.scene)
+    model, scene = open_run_and_scene(args)
     out = measure(model, scene, args.scene, args.split, args.jump, args.jump_ratio)
     print(json.dumps(out, indent=2))
 
