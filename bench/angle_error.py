@@ -34,11 +34,11 @@ def measure(model: TrainedModel, scene, root: Path, inset: float) -> dict:
         gt = load_ground_truth(root, v)
         if gt is None:
             continue
-        f = model.render(v.camera, ("final", "specular", "w_r"))
+        f = model.render(v.camera, ("final", "specular"))
         img = f.image("final").cpu().double().numpy()
         ref = v.composited(model.background.cpu()).double().numpy()
         spec = f.image("specular").cpu().double().numpy()
-        wr = f.image("w_r").cpu().double().numpy()
+        wr = f.gbuffer.w_r.cpu().double().numpy()
         mask = gt.mask.numpy()
         keep = ndimage.distance_transform_edt(mask) > inset
         rays = v.camera.camera_rays(torch.float64, "cpu") @ v.camera.R.to(torch.float64)
@@ -49,7 +49,7 @@ def measure(model: TrainedModel, scene, root: Path, inset: float) -> dict:
         cols["err"].append((img - ref)[keep])
         cols["gt"].append(ref[keep])
         cols["spec"].append(spec[keep])
-        cols["wr"].append(wr.reshape(wr.shape[0], wr.shape[1], -1)[..., 0][keep])
+        cols["wr"].append(wr[keep])
     cos, err, gtc, spec, wr = (np.concatenate(cols[k]) for k in ("cos", "err", "gt", "spec", "wr"))
     bins = bin_by_cos(cos, err, gtc, wr, spec)
     return {"pixels": int(cos.size), "inset_px": inset, "by_cos": bins}
