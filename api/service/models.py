@@ -218,3 +218,51 @@ class Worker(Base):
     started_at: Mapped[datetime] = mapped_column(default=utcnow)
     heartbeat_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
     expires_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class Upload(Base):
+    """One file arriving in chunks (``POST /v1/scenes/{id}/uploads``), resumable.
+
+    Each chunk that arrived whole is an object of its own under the scene
+    (``scenes/{id}/uploads/{upload id}/...``, listed in ``chunks`` in offset order), so
+    ``offset`` is exactly what the server holds and a client that lost its connection,
+    or its process, sends only the rest. When ``offset`` reaches ``size`` the chunks are
+    joined into the scene file, checked against ``sha256``, and the row goes away.
+    """
+
+    __tablename__ = "uploads"
+    __table_args__ = (Index("ix_uploads_scene_path", "scene_id", "path"),)
+
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
+    owner: Mapped[str] = mapped_column(String(100), index=True)
+    path: Mapped[str] = mapped_column(String(1024))
+    size: Mapped[int] = mapped_column(BigInteger)
+    sha256: Mapped[str] = mapped_column(String(64))
+    offset: Mapped[int] = mapped_column(BigInteger, default=0)
+    # [[start offset, store key], ...] of the chunks received, in offset order
+    chunks: Mapped[list[Any]] = mapped_column(JSON, default=list)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    updated_at: Mapped[datetime] = mapped_column(default=utcnow)
+
+
+class IdempotencyRecord(Base):
+    """What a ``POST`` sent with an ``Idempotency-Key`` header created.
+
+    A retry with the same key (same owner, same route) and the same body answers the
+    object the first request made instead of making another; the same key with another
+    body is refused. Records older than ``Settings.idempotency_ttl_s`` are swept.
+    """
+
+    __tablename__ = "idempotency_keys"
+    __table_args__ = (
+        UniqueConstraint("owner", "route", "key", name="uq_idempotency_owner_route_key"),
+    )
+
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    owner: Mapped[str] = mapped_column(String(100))
+    route: Mapped[str] = mapped_column(String(100))  # e.g. "POST /v1/jobs"
+    key: Mapped[str] = mapped_column(String(255))
+    request_sha256: Mapped[str] = mapped_column(String(64))
+    resource_id: Mapped[str] = mapped_column(String(40))
+    created_at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
