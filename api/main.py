@@ -17,7 +17,17 @@ from sqlalchemy import update
 import viewer_web
 from api.deps import READ_THREADS, SCOPE_EXTRA
 from api.problems import PROBLEM_JSON, install_handlers
-from api.routers import artifacts, jobs, keys, meshes, metrics, scenes, viewer, workers
+from api.routers import (
+    artifacts,
+    jobs,
+    keys,
+    meshes,
+    metrics,
+    scenes,
+    uploads,
+    viewer,
+    workers,
+)
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import Scene, SceneState
@@ -32,7 +42,9 @@ from api.timing import ServerTimingMiddleware
 log = logging.getLogger("glint.api")
 
 # every router of the API, mounted under /v1 (each built with StrictJsonRoute)
-ROUTERS = tuple(m.router for m in (keys, scenes, jobs, metrics, meshes, artifacts, workers, viewer))
+ROUTERS = tuple(
+    m.router for m in (keys, scenes, uploads, jobs, metrics, meshes, artifacts, workers, viewer)
+)
 
 
 # a scene another replica has been validating this long is taken as abandoned by a dead
@@ -118,7 +130,13 @@ def create_app(
             app.state.scratch.sweep_tmp()
         sweeper = None
         if settings.store_sweep_s > 0:
-            sweeper = Sweeper(database, app.state.store, settings.store_sweep_s).start()
+            sweeper = Sweeper(
+                database,
+                app.state.store,
+                settings.store_sweep_s,
+                upload_idle_s=settings.upload_expire_s,
+                idempotency_ttl_s=settings.idempotency_ttl_s,
+            ).start()
         app.state.queue = queue or make_queue(settings)
         _recover(database, app.state.queue, settings)
         reaper = None

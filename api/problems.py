@@ -105,6 +105,7 @@ class ApiError(Exception):
         errors: list[FieldError] | None = None,
         headers: dict[str, str] | None = None,
         title: str | None = None,
+        extensions: dict[str, Any] | None = None,
     ) -> None:
         super().__init__(detail)
         self.status = status
@@ -113,6 +114,8 @@ class ApiError(Exception):
         self.errors = errors
         self.headers = headers
         self.title = title or TITLES.get(status, "Error")
+        # RFC 9457 extension members a client acts on (e.g. an upload's current "offset")
+        self.extensions = extensions
 
 
 def not_found(what: str, ident: str) -> ApiError:
@@ -129,6 +132,7 @@ def problem_response(
     title: str | None = None,
     errors: list[FieldError] | None = None,
     headers: dict[str, str] | None = None,
+    extensions: dict[str, Any] | None = None,
 ) -> JSONResponse:
     body = Problem(
         type=f"urn:glint:problem:{slug}",
@@ -138,8 +142,11 @@ def problem_response(
         instance=request.url.path,
         errors=errors,
     )
+    content = body.model_dump(exclude_none=True)
+    for name, value in (extensions or {}).items():
+        content.setdefault(name, value)  # never overrides a standard member
     return JSONResponse(
-        body.model_dump(exclude_none=True),
+        content,
         status_code=status,
         media_type=PROBLEM_JSON,
         headers=headers,
@@ -171,6 +178,7 @@ async def _api_problem(request: Request, exc: Exception) -> JSONResponse:
         title=exc.title,
         errors=exc.errors,
         headers=exc.headers,
+        extensions=exc.extensions,
     )
 
 

@@ -5,9 +5,10 @@ from __future__ import annotations
 from datetime import datetime
 from typing import Any, Generic, Literal, TypeVar
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from api.problems import Problem
+from api.service.webhook_guard import MAX_URL_LENGTH, split_url
 from core.config import TrainConfig
 
 T = TypeVar("T")
@@ -46,6 +47,11 @@ class Me(BaseModel):
     key_id: str
     name: str
     scope: ScopeName = Field(description=SCOPE_HELP)
+    webhook_url: str | None = Field(
+        None,
+        description="the key's default webhook: jobs created with this key and no webhook "
+        "of their own POST their end there (PUT /v1/keys/me/webhook)",
+    )
 
 
 class KeyCreate(BaseModel):
@@ -137,6 +143,36 @@ class UploadResult(BaseModel):
     files: list[SceneFileOut] = Field(description="files written by this request")
 
 
+class UploadCreate(BaseModel):
+    """One file announced for a resumable upload: where it goes, its size, its checksum."""
+
+    model_config = ConfigDict(extra="forbid")
+    path: str = Field(
+        min_length=1, max_length=1024, description="its path inside the scene, e.g. train/r_0.png"
+    )
+    size: int = Field(ge=0, le=2**62, description="the file's size in bytes")
+    sha256: str = Field(
+        pattern="^[0-9a-fA-F]{64}$", description="the file's SHA-256 (hex); checked at the end"
+    )
+
+
+UploadStateName = Literal["open", "complete"]
+
+
+class UploadOut(BaseModel):
+    id: str | None = Field(description="upl_...; null once the file is complete")
+    scene_id: str
+    path: str
+    size: int
+    sha256: str
+    offset: int = Field(description="bytes the server holds: send the next chunk from here")
+    state: UploadStateName
+    chunk_max_bytes: int = Field(description="the largest chunk a PATCH may carry")
+    file: SceneFileOut | None = Field(description="the scene file, once complete")
+    created_at: datetime | None
+    updated_at: datetime | None
+
+
 # --- jobs ----------------------------------------------------------------------------
 
 
@@ -169,6 +205,75 @@ class SfmConfig(BaseModel):
     seed: int = Field(0, ge=0, le=2**31 - 1, description="random seed of the mapper")
 
 
+# --- webhooks ------------------------------------------------------------------------
+
+WebhookEventName = Literal["job.succeeded", "job.failed", "job.cancelled"]
+DeliveryStateName = Literal["pending", "delivered", "failed"]
+SECRET_HELP = (
+    "the HMAC-SHA256 key that signs every event (Glint-Signature); omitted: the server "
+    "makes one (whsec_...) and answers it once, in this response"
+)
+
+
+class WebhookIn(BaseModel):
+    """Where to POST a job's end, and the key its events are signed with."""
+
+    model_config = ConfigDict(extra="forbid")
+    url: str = Field(
+        min_length=1,
+        max_length=MAX_URL_LENGTH,
+        description="http(s) URL; a loopback, private or link-local address (or localhost) "
+        "is refused unless the server allows it (GLINT_WEBHOOK_ALLOW_PRIVATE)",
+        examples=["https://example.com/hooks/glint"],
+    )
+    secret: str | None = Field(None, min_length=16, max_length=256, description=SECRET_HELP)
+
+    @field_validator("url")
+    @classmethod
+    def _http_url(cls, url: str) -> str:
+        split_url(url)  # ValueError: scheme, host, port, white space
+        return url
+
+
+class DeliverySummary(BaseModel):
+    id: str = Field(description="whd_...; the Glint-Delivery header of its requests")
+    event: WebhookEventName
+    state: DeliveryStateName
+    attempts: int
+    last_status: int | None = Field(description="HTTP status of the last attempt")
+    created_at: datetime
+    delivered_at: datetime | None
+
+
+class JobWebhookOut(BaseModel):
+    url: str
+    deliveries: list[DeliverySummary] = Field(
+        description="the latest deliveries (at most 10), newest first: one per end of the job"
+    )
+    secret: str | None = Field(
+        None,
+        exclude_if=lambda secret: secret is None,  # absent, not null, where it is not shown
+        description="only in the 201 response of the request that set it, when the server "
+        "made it; never shown again",
+    )
+
+
+class KeyWebhookOut(BaseModel):
+    url: str
+    secret: str = Field(description="the signing key; shown only in this response")
+
+
+class WebhookDeliveryOut(DeliverySummary):
+    url: str = Field(description="where it is sent (the job's webhook when the job ended)")
+    last_error: str | None = Field(description="why the last attempt failed")
+    next_attempt_at: datetime | None = Field(
+        description="when a pending delivery is tried next; null once delivered or failed"
+    )
+
+
+# --- jobs (continued) ----------------------------------------------------------------
+
+
 class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
     scene_id: str = Field(min_length=1, max_length=40)
@@ -179,6 +284,10 @@ class JobCreate(BaseModel):
         None,
         description="structure-from-motion options; only for scenes of photos without poses "
         "(report.needs_sfm), which get the defaults when this is omitted",
+    )
+    webhook: WebhookIn | None = Field(
+        None,
+        description="POST the job's end here (signed); omitted: the key's default webhook, if any",
     )
 
 
@@ -215,6 +324,10 @@ class MeshCreate(BaseModel):
     )
     simplify: int | None = Field(
         None, ge=4, le=100_000_000, description="quadric decimation to about this many faces"
+    )
+    webhook: WebhookIn | None = Field(
+        None,
+        description="POST the mesh job's end here (signed); omitted: the key's default webhook",
     )
 
 
@@ -258,6 +371,9 @@ class JobOut(BaseModel):
         description="jobs on photos without poses: {'options': {...}, 'result': null until "
         "the sfm phase recovered the cameras, then {'images', 'registered', 'unregistered', "
         "...}}; null for scenes with poses"
+    )
+    webhook: JobWebhookOut | None = Field(
+        None, description="where the job's end is POSTed, and the deliveries so far; or null"
     )
     created_at: datetime
     updated_at: datetime

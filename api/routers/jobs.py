@@ -42,14 +42,16 @@ from api.deps import (
     presented_key,
     read_threads,
 )
+from api.idempotent import IdempotencyKey, commit_or_replay, replayed
+from api.job_webhook import job_webhook, with_made_secret
 from api.problems import ApiError, FieldError, not_found, responses
 from api.routers.scenes import owned_scene
 from api.schemas import JobCreate, JobKindName, JobOut, JobStateName, Page, SfmConfig
 from api.service.db import Database
+from api.service.discard import discard
 from api.service.models import Job, JobState, Scene, SceneState, new_id
 from api.service.queue import JobQueue
 from api.service.store import job_key
-from api.service.sweeper import discard
 from api.strict_json import StrictJsonRoute
 from api.views import job_out
 
@@ -58,6 +60,7 @@ log = logging.getLogger("glint.api")
 
 JobId = Annotated[str, Path(max_length=40, description="job id (job_...)")]
 AUTH = (401, 404)
+CREATE_ROUTE = "POST /v1/jobs"
 
 
 def _now() -> datetime:
@@ -129,8 +132,18 @@ def enqueue(queue: JobQueue, job_id: str) -> None:
     "scene with poses).",
 )
 def create_job(
-    body: JobCreate, principal: PrincipalDep, session: SessionDep, queue: QueueDep
+    body: JobCreate,
+    principal: PrincipalDep,
+    session: SessionDep,
+    queue: QueueDep,
+    settings: SettingsDep,
+    response: Response,
+    idempotency_key: IdempotencyKey = None,
 ) -> JobOut:
+    request_body = body.model_dump(mode="json")
+    existing = replayed(session, principal, CREATE_ROUTE, idempotency_key, request_body, response)
+    if existing is not None:  # a retry: answer what the first request made
+        return job_out(owned_job(session, principal, existing))
     scene = owned_scene(session, principal, body.scene_id)
     if scene.state != SceneState.READY:
         raise ApiError(
@@ -138,6 +151,7 @@ def create_job(
             "scene-not-ready",
             f"scene '{scene.id}' is {scene.state}; commit it (and pass validation) first",
         )
+    hook = job_webhook(session, principal, body.webhook, settings)  # 422: forbidden address
     cfg = body.config
     job = Job(
         id=new_id("job"),
@@ -146,11 +160,18 @@ def create_job(
         config=cfg.model_dump(mode="json"),
         total_iterations=cfg.iterations,
         sfm=sfm_record(scene, body.sfm),
+        **hook.columns(),
     )
     session.add(job)
-    session.commit()  # the row exists before any runner can be handed its id
+    session.flush()
+    # the row exists before any runner can be handed its id
+    existing = commit_or_replay(
+        session, principal, CREATE_ROUTE, idempotency_key, request_body, job.id, response
+    )
+    if existing is not None:  # a request with the same key won the race
+        return job_out(owned_job(session, principal, existing))
     enqueue(queue, job.id)
-    return job_out(job)
+    return with_made_secret(job_out(job), hook)
 
 
 @router.get("", response_model=Page[JobOut], responses=responses(401, 422), summary="List jobs")

@@ -14,9 +14,10 @@ import math
 from pathlib import Path
 from typing import Annotated
 
-from fastapi import APIRouter, Query
+from fastapi import APIRouter, Query, Response
 
 from api.deps import JsonBody, PrincipalDep, QueueDep, SessionDep, SettingsDep, StoreDep, StoreUp
+from api.idempotent import IdempotencyKey, commit_or_replay, replayed
 from api.problems import ApiError, FieldError, responses
 from api.routers.jobs import AUTH, JobId, enqueue, job_page, owned_job
 from api.schemas import JobOut, MeshCreate, Page
@@ -56,7 +57,13 @@ def create_mesh(
     settings: SettingsDep,
     store: StoreDep,
     queue: QueueDep,
+    response: Response,
+    idempotency_key: IdempotencyKey = None,
 ) -> JobOut:
+    route, request_body = f"POST /v1/jobs/{job_id}/meshes", body.model_dump(mode="json")
+    existing = replayed(session, principal, route, idempotency_key, request_body, response)
+    if existing is not None:  # a retry: answer the mesh job the first request made
+        return job_out(owned_job(session, principal, existing))
     parent = owned_job(session, principal, job_id)
     if parent.kind != JobKind.TRAIN:
         raise ApiError(
@@ -94,7 +101,12 @@ def create_mesh(
         total_iterations=0,
     )
     session.add(mesh)
-    session.commit()
+    session.flush()
+    existing = commit_or_replay(
+        session, principal, route, idempotency_key, request_body, mesh.id, response
+    )
+    if existing is not None:  # a request with the same key won the race
+        return job_out(owned_job(session, principal, existing))
     enqueue(queue, mesh.id)
     return job_out(mesh)
 

@@ -29,10 +29,13 @@ from api.deps import (
     SettingsDep,
     StoreDep,
 )
+from api.idempotent import IdempotencyKey, commit_or_replay, replayed
 from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
 from api.schemas import Page, SceneCreate, SceneFileOut, SceneOut, UploadResult
+from api.service.chunk_uploads import drop_scene_uploads
 from api.service.db import Database
+from api.service.discard import discard
 from api.service.models import Job, Scene, SceneFile, SceneState, new_id
 from api.service.settings import Settings
 from api.service.store import (
@@ -42,7 +45,6 @@ from api.service.store import (
     scene_files_key,
     scene_key,
 )
-from api.service.sweeper import discard
 from api.strict_json import StrictJsonRoute
 from api.uploads import Limits, StagedSet, receive_body, receive_multipart, too_large
 from api.validation import validate_scene
@@ -52,6 +54,7 @@ router = APIRouter(prefix="/scenes", tags=["scenes"], route_class=StrictJsonRout
 
 SceneId = Annotated[str, Path(max_length=40, description="scene id (scn_...)")]
 AUTH = (401, 404)
+CREATE_ROUTE = "POST /v1/scenes"
 
 MULTIPART_BODY: dict[str, Any] = {
     "requestBody": {
@@ -100,7 +103,7 @@ def owned_scene(
     return scene
 
 
-def _require_open(scene: Scene) -> None:
+def require_open(scene: Scene) -> None:
     if scene.state == SceneState.READY:
         raise ApiError(409, "scene-committed", f"scene '{scene.id}' is committed; files are frozen")
     if scene.state == SceneState.VALIDATING:
@@ -115,11 +118,25 @@ def _require_open(scene: Scene) -> None:
     dependencies=[JsonBody],
     summary="Create an empty scene",
 )
-def create_scene(body: SceneCreate, principal: PrincipalDep, session: SessionDep) -> SceneOut:
-    scene = Scene(id=new_id("scn"), owner=principal.owner, name=body.name)
-    session.add(scene)
-    session.commit()
-    return scene_out(scene)
+def create_scene(
+    body: SceneCreate,
+    principal: PrincipalDep,
+    session: SessionDep,
+    response: Response,
+    idempotency_key: IdempotencyKey = None,
+) -> SceneOut:
+    request_body = body.model_dump(mode="json")
+    existing = replayed(session, principal, CREATE_ROUTE, idempotency_key, request_body, response)
+    if existing is None:
+        scene = Scene(id=new_id("scn"), owner=principal.owner, name=body.name)
+        session.add(scene)
+        session.flush()
+        existing = commit_or_replay(
+            session, principal, CREATE_ROUTE, idempotency_key, request_body, scene.id, response
+        )
+        if existing is None:
+            return scene_out(scene)
+    return scene_out_one(session, owned_scene(session, principal, existing))
 
 
 @router.get("", response_model=Page[SceneOut], responses=responses(401, 422), summary="List scenes")
@@ -216,7 +233,7 @@ def delete_file(
     store: StoreDep,
 ) -> Response:
     scene = owned_scene(session, principal, scene_id, lock=True)
-    _require_open(scene)
+    require_open(scene)
     row = session.scalar(
         select(SceneFile).where(SceneFile.scene_id == scene_id, SceneFile.path == path)
     )
@@ -232,13 +249,13 @@ def delete_file(
 # --- uploads -------------------------------------------------------------------------
 
 
-def _upload_budget(
+def upload_budget(
     database: Database, principal: Principal, scene_id: str, settings: Settings
 ) -> Limits:
     """What the scene can still take; 404/409 before a byte of the body is read."""
     with database.read() as s:
         scene = owned_scene(s, principal, scene_id)
-        _require_open(scene)
+        require_open(scene)
         n, total = scene_totals(s, [scene_id]).get(scene_id, (0, 0))
     return Limits(
         max_file_bytes=settings.max_file_bytes,
@@ -262,7 +279,7 @@ def _conflicts(paths: set[str], existing: set[str]) -> str | None:
     return None
 
 
-def _commit_upload(
+def commit_staged(
     database: Database,
     store: ArtifactStore,
     principal: Principal,
@@ -275,7 +292,7 @@ def _commit_upload(
     try:
         with database.write() as s:
             scene = owned_scene(s, principal, scene_id, lock=True)
-            _require_open(scene)
+            require_open(scene)
             existing = {
                 r.path: r
                 for r in s.scalars(select(SceneFile).where(SceneFile.scene_id == scene_id))
@@ -323,7 +340,7 @@ def _commit_upload(
     return result
 
 
-def _key_for(scene_id: str) -> Callable[[str], str]:
+def key_for(scene_id: str) -> Callable[[str], str]:
     base = scene_files_key(scene_id)
     return lambda path: f"{base}/{path}"
 
@@ -344,12 +361,12 @@ async def upload_files(
     database: DatabaseDep,
     store: StoreDep,
 ) -> UploadResult:
-    limits = await run_in_threadpool(_upload_budget, database, principal, scene_id, settings)
+    limits = await run_in_threadpool(upload_budget, database, principal, scene_id, settings)
     staged = await receive_multipart(
-        request, store, _key_for(scene_id), limits, settings.upload_chunk_bytes
+        request, store, key_for(scene_id), limits, settings.upload_chunk_bytes
     )
     return await run_in_threadpool(
-        _commit_upload, database, store, principal, scene_id, staged, settings
+        commit_staged, database, store, principal, scene_id, staged, settings
     )
 
 
@@ -378,7 +395,7 @@ async def upload_archive(
             f"expected an archive (application/zip, application/x-tar, application/gzip, ...), "
             f"got '{ctype or 'nothing'}'",
         )
-    limits = await run_in_threadpool(_upload_budget, database, principal, scene_id, settings)
+    limits = await run_in_threadpool(upload_budget, database, principal, scene_id, settings)
     incoming = f"tmp/incoming/{uuid.uuid4().hex}"
     pending = await receive_body(  # spooled on local disk: archives are read out of order
         request, scratch, incoming, settings.max_archive_bytes, settings.upload_chunk_bytes
@@ -393,12 +410,12 @@ async def upload_archive(
             max_path_length=limits.max_path_length,
         )
         staged = await run_in_threadpool(
-            extract_archive, scratch.path(incoming), store, _key_for(scene_id), archive_limits
+            extract_archive, scratch.path(incoming), store, key_for(scene_id), archive_limits
         )
     finally:
         await run_in_threadpool(scratch.delete, incoming)
     return await run_in_threadpool(
-        _commit_upload, database, store, principal, scene_id, staged, settings
+        commit_staged, database, store, principal, scene_id, staged, settings
     )
 
 
@@ -423,7 +440,7 @@ def commit_scene(
 ) -> SceneOut:
     with database.write() as s:
         scene = owned_scene(s, principal, scene_id, lock=True)
-        _require_open(scene)
+        require_open(scene)
         n, _ = scene_totals(s, [scene_id]).get(scene_id, (0, 0))
         if n == 0:
             raise ApiError(422, "no-files", f"scene '{scene_id}' has no files to validate")
@@ -457,6 +474,7 @@ def commit_scene(
             out = scene_out_one(s, scene)
     if problem is not None:
         raise problem
+    drop_scene_uploads(database, store, scene_id)  # a ready scene takes no more chunks
     return out
 
 

@@ -1,4 +1,4 @@
-"""Database tables: API keys, scenes and their files, jobs and their artifacts.
+"""Database tables: API keys, scenes and their files, jobs, their artifacts and webhooks.
 
 Ownership is a plain ``owner`` name copied from the API key onto every scene and job,
 so a query filters on it directly. Jobs carry their own progress fields (the database,
@@ -75,6 +75,9 @@ class ApiKey(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
     last_used_at: Mapped[datetime | None] = mapped_column(default=None)
     revoked_at: Mapped[datetime | None] = mapped_column(default=None)
+    # the default webhook of jobs created with this key (PUT /v1/keys/me/webhook)
+    webhook_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    webhook_secret: Mapped[str | None] = mapped_column(String(300), default=None)
 
 
 class SceneState:
@@ -177,12 +180,21 @@ class Job(Base):
     updated_at: Mapped[datetime] = mapped_column(default=utcnow)
     started_at: Mapped[datetime | None] = mapped_column(default=None)
     finished_at: Mapped[datetime | None] = mapped_column(default=None)
+    # where the job's end is POSTed (api.service.webhooks), and the key that signs it
+    webhook_url: Mapped[str | None] = mapped_column(String(2048), default=None)
+    webhook_secret: Mapped[str | None] = mapped_column(String(300), default=None)
 
     artifacts: Mapped[list[Artifact]] = relationship(
         back_populates="job",
         cascade="all, delete-orphan",
         passive_deletes=True,
         order_by="Artifact.name",
+    )
+    webhook_deliveries: Mapped[list[WebhookDelivery]] = relationship(
+        back_populates="job",
+        cascade="all, delete-orphan",
+        passive_deletes=True,
+        order_by="WebhookDelivery.created_at",
     )
 
 
@@ -199,6 +211,42 @@ class Artifact(Base):
     created_at: Mapped[datetime] = mapped_column(default=utcnow)
 
     job: Mapped[Job] = relationship(back_populates="artifacts")
+
+
+class DeliveryState:
+    PENDING = "pending"  # waiting for its next attempt (or being sent now)
+    DELIVERED = "delivered"  # the receiver answered 2xx
+    FAILED = "failed"  # out of attempts, or refused (a forbidden address)
+    ALL = (PENDING, DELIVERED, FAILED)
+
+
+class WebhookDelivery(Base):
+    """One POST of a job's end to its webhook, with its delivery state.
+
+    Created in the transaction that writes the job's terminal state (so a job end is
+    never lost or announced twice) and sent by the API's dispatcher
+    (:mod:`api.service.webhook_dispatch`), which claims it by moving ``next_attempt_at``
+    forward in a conditional ``UPDATE``: replicas never send one attempt twice.
+    """
+
+    __tablename__ = "webhook_deliveries"
+    __table_args__ = (Index("ix_webhook_deliveries_due", "state", "next_attempt_at"),)
+
+    id: Mapped[str] = mapped_column(String(40), primary_key=True)
+    job_id: Mapped[str] = mapped_column(ForeignKey("jobs.id", ondelete="CASCADE"), index=True)
+    owner: Mapped[str] = mapped_column(String(100))
+    url: Mapped[str] = mapped_column(String(2048))
+    event: Mapped[str] = mapped_column(String(32))  # job.succeeded, job.failed, job.cancelled
+    payload: Mapped[dict[str, Any]] = mapped_column()  # the JSON body, as signed and sent
+    state: Mapped[str] = mapped_column(String(16), default=DeliveryState.PENDING)
+    attempts: Mapped[int] = mapped_column(Integer, default=0)
+    next_attempt_at: Mapped[datetime | None] = mapped_column(default=None)
+    last_status: Mapped[int | None] = mapped_column(Integer, default=None)
+    last_error: Mapped[str | None] = mapped_column(Text, default=None)
+    created_at: Mapped[datetime] = mapped_column(default=utcnow)
+    delivered_at: Mapped[datetime | None] = mapped_column(default=None)
+
+    job: Mapped[Job] = relationship(back_populates="webhook_deliveries")
 
 
 class Worker(Base):

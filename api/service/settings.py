@@ -160,6 +160,25 @@ class Settings(BaseSettings):
         200.0, gt=1, description="uncompressed/compressed bound (zip bombs)"
     )
     upload_chunk_bytes: int = Field(1 * MiB, ge=4096, description="write granularity")
+    upload_chunk_max_bytes: int = Field(
+        64 * MiB,
+        ge=4096,
+        description="largest chunk of a resumable upload (PATCH /v1/scenes/{id}/uploads/{id}); "
+        "a chunk cut off midway is sent again whole, so this bounds what a dropped connection "
+        "costs",
+    )
+    upload_expire_s: float = Field(
+        7 * 24 * 3600.0,
+        gt=0,
+        description="an unfinished resumable upload that received no chunk for this long is "
+        "removed by the store sweep",
+    )
+    idempotency_ttl_s: float = Field(
+        24 * 3600.0,
+        gt=0,
+        description="how long a POST's Idempotency-Key is remembered (a retry within it "
+        "answers the object the first request made)",
+    )
     max_path_length: int = Field(255, ge=16, description="longest relative file path")
 
     # --- validation and jobs -------------------------------------------------------
@@ -233,6 +252,38 @@ class Settings(BaseSettings):
     sse_poll_s: float = Field(0.5, gt=0, description="job event stream DB poll period")
     sse_keepalive_s: float = Field(15.0, gt=0, description="comment line when nothing changed")
     page_size_max: int = Field(200, ge=1, description="largest page a list endpoint returns")
+
+    # --- webhooks (POSTed when a job ends; api.service.webhooks) -------------------
+    webhook_allow_private: bool = Field(
+        False,
+        description="let webhooks go to loopback, private, link-local (cloud metadata), CGNAT, "
+        "multicast and reserved addresses and to 'localhost'; off: such a URL is refused when "
+        "it is set (422) and a host name resolving to one fails its delivery",
+    )
+    webhook_timeout_s: float = Field(
+        10.0,
+        gt=0,
+        le=300,
+        description="connect and read timeout of one webhook delivery attempt",
+    )
+    webhook_max_attempts: int = Field(
+        6, ge=1, le=100, description="attempts a webhook delivery gets; then it is failed"
+    )
+    webhook_backoff_s: float = Field(
+        5.0,
+        ge=0,
+        description="wait before a failed webhook delivery's second attempt; doubled after "
+        "each further failure",
+    )
+    webhook_backoff_max_s: float = Field(
+        600.0, ge=0, description="longest wait between two attempts of a webhook delivery"
+    )
+    webhook_poll_s: float = Field(
+        1.0,
+        gt=0,
+        le=3600,
+        description="how often the API's webhook dispatcher looks for deliveries that are due",
+    )
 
     @model_validator(mode="after")
     def _liveness_periods(self) -> Settings:

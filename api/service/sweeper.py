@@ -22,7 +22,9 @@ from typing import Any
 
 from sqlalchemy import select
 
+from api.service.chunk_uploads import expire_uploads
 from api.service.db import Database
+from api.service.idempotency import forget_expired
 from api.service.models import Job, Scene
 from api.service.store import ArtifactStore, StoreUnavailableError, job_key, scene_key
 
@@ -30,6 +32,8 @@ log = logging.getLogger("glint.sweeper")
 
 ORPHAN_GRACE_S = 900.0
 ABANDONED_AFTER_S = 24 * 3600.0
+UPLOAD_IDLE_S = 7 * 24 * 3600.0  # the defaults of Settings.upload_expire_s and
+IDEMPOTENCY_TTL_S = 24 * 3600.0  # Settings.idempotency_ttl_s
 _ID_BATCH = 500
 
 
@@ -38,6 +42,8 @@ class Swept:
     scenes: int = 0
     jobs: int = 0
     uploads: int = 0
+    resumable: int = 0
+    idempotency_keys: int = 0
 
 
 def _known(database: Database, column: Any, ids: list[str]) -> set[str]:
@@ -59,9 +65,14 @@ def sweep(
     *,
     grace_s: float = ORPHAN_GRACE_S,
     abandoned_after_s: float = ABANDONED_AFTER_S,
+    upload_idle_s: float = UPLOAD_IDLE_S,
+    idempotency_ttl_s: float = IDEMPOTENCY_TTL_S,
 ) -> Swept:
-    """One pass: orphaned scene and job prefixes, abandoned uploads; what went."""
+    """One pass: orphaned scene and job prefixes, abandoned uploads (store writes and
+    resumable uploads nobody finished), expired Idempotency-Keys; what went."""
     out = Swept()
+    out.resumable = expire_uploads(database, store, upload_idle_s)
+    out.idempotency_keys = forget_expired(database, idempotency_ttl_s)
     cutoff = time.time() - grace_s
     for kind, column, key in (("scenes", Scene.id, scene_key), ("jobs", Job.id, job_key)):
         ids = store.children(kind)
@@ -76,16 +87,6 @@ def sweep(
     return out
 
 
-def discard(store: ArtifactStore, keys: list[str]) -> None:
-    """Delete the objects of rows just deleted; a store that is down leaves them to the
-    sweep (the rows are gone, so nothing lists them meanwhile)."""
-    for key in keys:
-        try:
-            store.delete(key)
-        except StoreUnavailableError as exc:
-            log.warning("cannot delete %s now (%s); the store sweep will", key, exc)
-
-
 class Sweeper:
     """:func:`sweep` every ``period_s`` on a thread of its own (the API runs one)."""
 
@@ -95,8 +96,11 @@ class Sweeper:
         store: ArtifactStore,
         period_s: float,
         grace_s: float = ORPHAN_GRACE_S,
+        upload_idle_s: float = UPLOAD_IDLE_S,
+        idempotency_ttl_s: float = IDEMPOTENCY_TTL_S,
     ) -> None:
         self.database, self.store, self.period_s, self.grace_s = database, store, period_s, grace_s
+        self.upload_idle_s, self.idempotency_ttl_s = upload_idle_s, idempotency_ttl_s
         self._closed = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="glint-sweeper", daemon=True)
 
@@ -107,7 +111,13 @@ class Sweeper:
     def _loop(self) -> None:
         while not self._closed.wait(self.period_s):
             try:
-                sweep(self.database, self.store, grace_s=self.grace_s)
+                sweep(
+                    self.database,
+                    self.store,
+                    grace_s=self.grace_s,
+                    upload_idle_s=self.upload_idle_s,
+                    idempotency_ttl_s=self.idempotency_ttl_s,
+                )
             except StoreUnavailableError as exc:
                 log.warning("sweep skipped: %s", exc)
             except Exception:

@@ -4,6 +4,7 @@ row accounts for. Each answer is quick and problem+json; nothing half-written is
 
 from __future__ import annotations
 
+import hashlib
 import socket
 import time
 import uuid
@@ -169,3 +170,46 @@ def test_deletes_remove_objects_and_the_sweep_removes_orphans(
     assert not [k for k in keys if orphan in k]
     assert f"glint/scenes/{kept}/files/a.txt" in keys  # what a row accounts for stays
     assert abandoned["UploadId"] not in {u["UploadId"] for u in s3.uploads(bucket)}
+
+
+def test_resumable_upload_through_the_bucket_sends_only_the_rest(
+    s3: S3Server, bucket: str, good: LiveServer
+) -> None:
+    """Chunks are objects in the bucket: one cut off midway leaves nothing, the upload
+    goes on from the server's offset, and completion leaves exactly the scene file."""
+    key = good.new_key(f"owner-{uuid.uuid4().hex[:8]}")
+    data = bytes(range(256)) * (PART_BYTES // 128 + 3)  # over two store parts
+    sha = hashlib.sha256(data).hexdigest()
+    with good.client(key) as c:
+        sid = c.post("/v1/scenes", json={"name": "chunks"}).json()["id"]
+        announce = {"path": "big.bin", "size": len(data), "sha256": sha}
+        up = c.post(f"/v1/scenes/{sid}/uploads", json=announce).json()
+        half = len(data) // 2
+        r = c.patch(
+            f"/v1/scenes/{sid}/uploads/{up['id']}",
+            content=data[:half],
+            headers={"Upload-Offset": "0", "Content-Type": "application/offset+octet-stream"},
+        )
+        assert r.status_code == 200 and r.json()["offset"] == half, r.text
+    request = (
+        f"PATCH /v1/scenes/{sid}/uploads/{up['id']} HTTP/1.1\r\nHost: 127.0.0.1\r\n"
+        f"Authorization: Bearer {key}\r\nContent-Type: application/offset+octet-stream\r\n"
+        f"Upload-Offset: {half}\r\nContent-Length: {len(data) - half}\r\n\r\n"
+    ).encode()
+    with socket.create_connection(("127.0.0.1", good.port)) as sock:
+        sock.sendall(request + data[half : half + PART_BYTES // 2])  # then the line drops
+    chunks = f"glint/scenes/{sid}/uploads/{up['id']}/"
+    wait_for(lambda: not s3.uploads(bucket), timeout=30)  # the cut chunk's write aborted
+    assert len([k for k in s3.keys(bucket) if k.startswith(chunks)]) == 1
+    with good.client(key) as c:
+        again = c.post(f"/v1/scenes/{sid}/uploads", json=announce).json()
+        assert again["id"] == up["id"] and again["offset"] == half
+        r = c.patch(
+            f"/v1/scenes/{sid}/uploads/{up['id']}",
+            content=data[half:],
+            headers={"Upload-Offset": str(half), "Content-Type": "application/offset+octet-stream"},
+        )
+        assert r.status_code == 200 and r.json()["state"] == "complete", r.text
+        assert r.json()["file"]["sha256"] == sha
+    assert [k for k in s3.keys(bucket) if sid in k] == [f"glint/scenes/{sid}/files/big.bin"]
+    assert not s3.uploads(bucket)
