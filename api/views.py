@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import Any
 
 from sqlalchemy import Row, func, select
 from sqlalchemy.orm import Session
 
 from api.schemas import JobOut, SceneOut
-from api.service.models import Job, JobState, Scene, SceneFile
+from api.service.job_document import job_document
+from api.service.models import Job, Scene, SceneFile, WebhookDelivery
 
 
 def scene_totals(session: Session, scene_ids: list[str]) -> dict[str, tuple[int, int]]:
@@ -43,43 +45,9 @@ def scene_out_one(session: Session, scene: Scene) -> SceneOut:
     return scene_out(scene, scene_totals(session, [scene.id]).get(scene.id, (0, 0)))
 
 
-def job_progress(job: Job | Row[Any]) -> float:
-    if job.state == JobState.SUCCEEDED:
-        return 1.0
-    if job.total_iterations <= 0:
-        return 0.0
-    return max(0.0, min(1.0, job.iteration / job.total_iterations))
-
-
-def job_out(job: Job | Row[Any]) -> JobOut:
-    """The response model of a job, from its ORM object or a row of the jobs table."""
-    return JobOut(
-        id=job.id,
-        kind=job.kind,  # type: ignore[arg-type]
-        parent_id=job.parent_id,
-        scene_id=job.scene_id,
-        state=job.state,  # type: ignore[arg-type]
-        cancel_requested=job.cancel_requested,
-        phase=job.phase,
-        iteration=job.iteration,
-        total_iterations=job.total_iterations,
-        progress=job_progress(job),
-        n_gaussians=job.n_gaussians,
-        loss=job.loss,
-        metrics=job.metrics,
-        elapsed_s=job.elapsed_s,
-        eta_s=job.eta_s,
-        time_budget_s=(job.config or {}).get("time_budget"),
-        time_left_s=(job.metrics or {}).get("time_left"),
-        error=job.error,
-        attempts=job.attempts,
-        version=job.version,
-        config=job.config,
-        plan=job.plan,
-        stage=job.stage,
-        sfm=job.sfm,
-        created_at=job.created_at,
-        updated_at=job.updated_at,
-        started_at=job.started_at,
-        finished_at=job.finished_at,
-    )
+def job_out(
+    job: Job | Row[Any], deliveries: Iterable[WebhookDelivery | Row[Any]] | None = None
+) -> JobOut:
+    """The response model of a job, from its ORM object or a row of the jobs table (with
+    its webhook deliveries, which a row does not carry)."""
+    return JobOut(**job_document(job, deliveries))

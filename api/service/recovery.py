@@ -33,6 +33,7 @@ from api.service.broker import drop_unacked, pending_job_ids, unacked_deliveries
 from api.service.db import Database
 from api.service.models import Job, JobState
 from api.service.settings import Settings
+from api.service.webhooks import record_job_end
 
 log = logging.getLogger("glint.recovery")
 
@@ -136,6 +137,8 @@ def settle_dead_runners(
             )
             if res.rowcount == 1:
                 bucket.append(r.id)
+                if bucket is not out.requeued:  # the job ended here: its webhook event
+                    record_job_end(s, r.id)
     return out
 
 

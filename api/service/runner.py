@@ -27,7 +27,8 @@
   evaluation and at the end. A store outage is ridden out with backoff (``store_retry_s``).
 * **End**: the run folder is sent to the store, *then* its artifacts are registered and
   the state set to ``succeeded``, ``cancelled`` or ``failed`` (with the error) in one
-  transaction: no artifact row names an object that is not whole in the store.
+  transaction: no artifact row names an object that is not whole in the store. The same
+  transaction records the job's webhook event, if it has a webhook.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ from api.service.store import (
     retrying,
     scene_files_key,
 )
+from api.service.webhooks import record_job_end
 
 log = logging.getLogger("glint.runner")
 
@@ -344,6 +346,7 @@ def _finish(
         s.execute(delete(Artifact).where(Artifact.job_id == reporter.job_id))
         for a in artifacts:
             s.add(Artifact(job_id=reporter.job_id, **a))
+        record_job_end(s, reporter.job_id)  # its webhook event, if it has one
     return True
 
 
