@@ -24,7 +24,7 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Request, Response
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import StreamingResponse
 from sqlalchemy import Row, bindparam, func, select
-from sqlalchemy.orm import Session
+from sqlalchemy.orm import Session, selectinload
 
 from api.auth import KeyRecord, Principal, lookup
 from api.deps import (
@@ -49,9 +49,11 @@ from api.routers.scenes import owned_scene
 from api.schemas import JobCreate, JobKindName, JobOut, JobStateName, Page, SfmConfig
 from api.service.db import Database
 from api.service.discard import discard
-from api.service.models import Job, JobState, Scene, SceneState, new_id
+from api.service.job_document import DELIVERIES_SHOWN, SUMMARY_FIELDS
+from api.service.models import Job, JobState, Scene, SceneState, WebhookDelivery, new_id
 from api.service.queue import JobQueue
 from api.service.store import job_key
+from api.service.webhooks import record_job_end
 from api.strict_json import StrictJsonRoute
 from api.views import job_out
 
@@ -207,6 +209,7 @@ def job_page(session: Session, where: list[Any], limit: int, offset: int) -> Pag
         .order_by(Job.created_at.desc(), Job.id)
         .limit(limit)
         .offset(offset)
+        .options(selectinload(Job.webhook_deliveries))  # one query for the page's webhooks
     )
     return Page[JobOut](items=[job_out(j) for j in rows], total=total, limit=limit, offset=offset)
 
@@ -216,28 +219,41 @@ def job_page(session: Session, where: list[Any], limit: int, offset: int) -> Pag
 _JOB_ROW = select(Job.__table__).where(
     Job.id == bindparam("job_id"), Job.owner == bindparam("owner")
 )
+_DELIVERIES = (
+    select(*(WebhookDelivery.__table__.c[name] for name in SUMMARY_FIELDS))
+    .where(WebhookDelivery.job_id == bindparam("job_id"))
+    .order_by(WebhookDelivery.created_at.desc(), WebhookDelivery.id.desc())
+    .limit(DELIVERIES_SHOWN)
+)
+JobStatus = tuple[Row[Any], list[Row[Any]]]  # the job's row, its latest webhook deliveries
 
 
 def _read_status(
     database: Database, key: str, job_id: str
-) -> tuple[KeyRecord | None, Row[Any] | None]:
-    """The caller's key and, when it is live, their job's row: one connection, one read
-    transaction, plain columns (no ORM objects)."""
+) -> tuple[KeyRecord | None, JobStatus | None]:
+    """The caller's key and, when it is live, their job's row (and, for a job with a
+    webhook, its latest deliveries): one connection, one read transaction, plain columns
+    (no ORM objects)."""
     with database.engine.connect() as connection:
         record = lookup(connection, key)
         if record is None:
             return None, None
         params = {"job_id": job_id, "owner": record.principal.owner}
-        return record, connection.execute(_JOB_ROW, params).first()
+        row = connection.execute(_JOB_ROW, params).first()
+        if row is None:
+            return record, None
+        if row.webhook_url is None:
+            return record, (row, [])
+        return record, (row, list(connection.execute(_DELIVERIES, {"job_id": job_id})))
 
 
-async def _job_status(request: Request, credentials: CredentialsDep) -> Row[Any] | None:
+async def _job_status(request: Request, credentials: CredentialsDep) -> JobStatus | None:
     """The caller's job for ``GET /v1/jobs/{id}``, authenticated like every route (401,
     403 before anything else) but in one trip to a read thread for the key and the job
     together instead of one for each: clients poll this route, and on a busy machine
     every thread hop is a wait for the GIL and a core."""
     key = presented_key(credentials)
-    record, row = await anyio.to_thread.run_sync(
+    record, status = await anyio.to_thread.run_sync(
         _read_status,
         request.app.state.database,
         key,
@@ -247,7 +263,7 @@ async def _job_status(request: Request, credentials: CredentialsDep) -> Row[Any]
     if record is not None:
         await note_use(request, record)
     authorize(request, record)
-    return row
+    return status
 
 
 @router.get(
@@ -258,16 +274,17 @@ async def _job_status(request: Request, credentials: CredentialsDep) -> Row[Any]
 )
 async def get_job(
     job_id: JobId,
-    row: Annotated[Row[Any] | None, Depends(_job_status)],
+    status: Annotated[JobStatus | None, Depends(_job_status)],
     if_none_match: Annotated[str | None, Header(max_length=1024)] = None,
 ) -> Response:
-    if row is None:  # no such job, or another owner's
+    if status is None:  # no such job, or another owner's
         raise not_found("job", job_id)
+    row, deliveries = status
     etag = _etag(row)
     if if_none_match and etag in [t.strip() for t in if_none_match.split(",")]:
         return Response(status_code=304, headers={"ETag": etag})
     # the bytes and headers FastAPI would make of the JobOut, without validating it again
-    response = Response(job_out(row).model_dump_json(), media_type="application/json")
+    response = Response(job_out(row, deliveries).model_dump_json(), media_type="application/json")
     response.headers["ETag"] = etag
     response.headers["Cache-Control"] = "no-cache"
     return response
@@ -290,6 +307,8 @@ def cancel_job(job_id: JobId, principal: PrincipalDep, session: SessionDep) -> J
         raise ApiError(409, "job-finished", f"job '{job_id}' is already {job.state}")
     job.updated_at = now
     job.version += 1
+    if job.state == JobState.CANCELLED:  # it ended here: its webhook event, if it has one
+        record_job_end(session, job)
     session.commit()
     return job_out(job)
 
