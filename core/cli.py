@@ -132,7 +132,12 @@ def _add_train_args(p: argparse.ArgumentParser) -> None:
         help="override a config field, e.g. loss.scale=50",
     )
     p.add_argument(
-        "--no-resume", action="store_true", help="start over even if a checkpoint exists"
+        "--overwrite",
+        "--no-resume",
+        dest="no_resume",
+        action="store_true",
+        help="start over even if the folder holds a run (by default a run is resumed, and "
+        "one made with another configuration is refused)",
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
 

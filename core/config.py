@@ -378,6 +378,34 @@ def saved_config(data: dict[str, Any], source: str = "saved config") -> TrainCon
     return config_from_dict({**LEGACY_DEFAULTS, **data}, source)
 
 
+# Fields a run may be resumed with changed: where it runs, and what its export writes
+# (a finished run re-exports with the new outputs settings; its training is unchanged).
+RESUMABLE_CHANGES = ("device", "backend", "outputs")
+
+
+def _flat(data: Any, prefix: str = "") -> dict[str, Any]:
+    if not isinstance(data, dict):
+        return {prefix: data}
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        out.update(_flat(value, f"{prefix}{key}." if isinstance(value, dict) else f"{prefix}{key}"))
+    return out
+
+
+def config_changes(
+    old: TrainConfig, new: TrainConfig, ignore: tuple[str, ...] = RESUMABLE_CHANGES
+) -> list[str]:
+    """Dotted fields whose values differ, as ``field: old -> new`` (``ignore``d prefixes
+    left out): what a run folder trained with against what a command now asks for."""
+    a, b = _flat(old.model_dump(mode="json")), _flat(new.model_dump(mode="json"))
+    changes = []
+    for key in sorted(set(a) | set(b)):
+        if a.get(key) == b.get(key) or any(key == p or key.startswith(p + ".") for p in ignore):
+            continue
+        changes.append(f"{key}: {json.dumps(a.get(key))} -> {json.dumps(b.get(key))}")
+    return changes
+
+
 def load_config(path: str | Path | None, overrides: dict[str, Any] | None = None) -> TrainConfig:
     """Read YAML/JSON (or defaults when ``path`` is None) and apply dotted overrides."""
     data: dict[str, Any] = {}

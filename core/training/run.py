@@ -7,10 +7,11 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from core.config import TrainConfig
+from core.config import ConfigError, TrainConfig, config_changes, saved_config
 from core.evaluation.geometry import geometry_errors
 from core.meshing.mesh import MeshCancelledError, mesh_model, mesh_section, stage_progress
 from core.model.run_folder import record_scene
+from core.model.trained import CHECKPOINT_NAME
 from core.outputs.export import export_run
 from core.scene.formats import load_scene
 from core.scene.views import Scene
@@ -33,6 +34,8 @@ def train_scene(
     """Load (if a path), train or resume, and export artifacts when training finished."""
     check_runnable(cfg)  # a missing GPU or backend fails here, before the run folder is made
     out = Path(out_dir)
+    if resume:
+        check_same_config(out, cfg)
     out.mkdir(parents=True, exist_ok=True)
     if not isinstance(scene, Scene):
         record_scene(out, scene)  # so `glint mesh/eval RUN` find the scene again
@@ -52,6 +55,30 @@ def train_scene(
         if on_event:
             on_event({"type": "exported", **summary})
     return result, summary
+
+
+def check_same_config(out: Path, cfg: TrainConfig) -> None:
+    """Refuse to resume (or report) a run folder trained with another configuration.
+
+    Without this, ``glint train scene --out runs/x --set ...`` on a folder holding a
+    finished run printed that old run's figures as if they were the new configuration's.
+    """
+    path = out / "config.json"
+    if not (out / CHECKPOINT_NAME).is_file() or not path.is_file():
+        return
+    try:
+        old = saved_config(json.loads(path.read_text()), source=str(path))
+    except (OSError, ValueError, ConfigError):
+        return  # unreadable: the checkpoint's own copy decides when it is loaded
+    changes = config_changes(old, cfg)
+    if changes:
+        shown = "; ".join(changes[:8]) + (
+            f"; and {len(changes) - 8} more" if len(changes) > 8 else ""
+        )
+        raise ConfigError(
+            f"{out} holds a run trained with another configuration ({shown}); "
+            "use another --out, or --overwrite to train again from the start there"
+        )
 
 
 def export_trained(
