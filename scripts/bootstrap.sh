@@ -13,4 +13,5 @@ python -m pip install -q --upgrade pip >/dev/null
 if ! python -c "import torch" 2>/dev/null; then
     python -m pip install -q "torch==${BOOTSTRAP_TORCH_VERSION:-2.13.0}"
 fi
-python -m pip install -q -e ".[dev]"
+# the HTTP client (client/, distribution glint-client) adds `glint remote` to `glint`
+python -m pip install -q -e ".[dev]" -e ./client

@@ -5,6 +5,7 @@ TYPE_CHECKING imports included): data flows one way and nothing loops back.
                     ├─▶ api.service ─▶ core
     worker/ ────────┘
     viewer_web ─▶ core.model (and below), never training
+    glint_client (client/) ─▶ nothing of the server, and nothing of the server ─▶ it
 
 Inside ``core`` each subpackage sits on a layer and imports only its own layer and
 the ones below it, so ``core`` has no cycle between packages; a module-level cycle
@@ -20,7 +21,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-CODE = ("api", "worker", "core", "viewer_web")
+CODE = ("api", "worker", "core", "viewer_web", "glint_client")
+SERVER_CODE = ("api", "worker", "core", "viewer_web")
+# where each package's source lives: the client is a distribution of its own in client/
+SOURCES = {top: ROOT / top for top in CODE} | {"glint_client": ROOT / "client" / "glint_client"}
 
 # core's packages, lowest first; a module may import its own layer and those below
 CORE_LAYERS: tuple[tuple[str, ...], ...] = (
@@ -46,7 +50,8 @@ TRAINING_SIDE = (
 
 
 def module_name(path: Path) -> str:
-    parts = list(path.relative_to(ROOT).with_suffix("").parts)
+    base = ROOT / "client" if path.is_relative_to(ROOT / "client") else ROOT
+    parts = list(path.relative_to(base).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts = parts[:-1]
     return ".".join(parts)
@@ -55,7 +60,7 @@ def module_name(path: Path) -> str:
 def modules() -> dict[str, Path]:
     out = {}
     for top in CODE:
-        for p in (ROOT / top).rglob("*.py"):
+        for p in SOURCES[top].rglob("*.py"):
             out[module_name(p)] = p
     return out
 
@@ -137,6 +142,18 @@ def test_core_imports_no_service_code() -> None:
 
 def test_viewer_imports_nothing_of_training() -> None:
     bad = violations(lambda m, t: under(m, "viewer_web") and under(t, *TRAINING_SIDE, "worker"))
+    assert not bad, bad
+
+
+def test_client_imports_no_server_code() -> None:
+    """The client installs without the server's dependencies (no torch): HTTP only."""
+    assert "glint_client.client" in MODULES
+    bad = violations(lambda m, t: under(m, "glint_client") and under(t, *SERVER_CODE))
+    assert not bad, bad
+
+
+def test_server_code_never_imports_the_client() -> None:
+    bad = violations(lambda m, t: under(m, *SERVER_CODE) and under(t, "glint_client"))
     assert not bad, bad
 
 
