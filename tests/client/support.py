@@ -16,14 +16,20 @@ class Killed(BaseException):
 
 
 class _Counted(httpx.SyncByteStream):
-    """A response body that reports its bytes as they are read (streams stay streams)."""
+    """A response body that reports its bytes as they are read (streams stay streams),
+    cut off with a read error after ``cut_after`` chunks when that is set."""
 
-    def __init__(self, inner: httpx.SyncByteStream, add: Callable[[int], None]) -> None:
+    def __init__(
+        self, inner: httpx.SyncByteStream, add: Callable[[int], None], cut_after: int | None
+    ) -> None:
         self.inner = inner
         self.add = add
+        self.cut_after = cut_after
 
     def __iter__(self) -> Iterator[bytes]:
-        for chunk in self.inner:
+        for i, chunk in enumerate(self.inner):
+            if self.cut_after is not None and i >= self.cut_after:
+                raise httpx.ReadError("connection cut (test)")
             self.add(len(chunk))
             yield chunk
 
@@ -37,12 +43,19 @@ class CountingTransport(httpx.HTTPTransport):
     ``before(request, n)`` runs before the n-th request (1-based) is sent and may raise
     (``Killed``) or return True to drop the answer after the server has acted on it
     (raising ``httpx.ReadTimeout``, as a timeout after the server did the work would).
+    ``cut(request, n)`` may return a chunk count after which the answer's body breaks off.
     """
 
-    def __init__(self, before: Callable[[httpx.Request, int], bool | None] | None = None) -> None:
+    def __init__(
+        self,
+        before: Callable[[httpx.Request, int], bool | None] | None = None,
+        cut: Callable[[httpx.Request, int], int | None] | None = None,
+    ) -> None:
         super().__init__()
         self.before = before
+        self.cut = cut  # (request, n) -> cut the response body after this many chunks
         self.requests: list[tuple[str, str, int]] = []  # method, path, body bytes sent
+        self.headers: list[httpx.Headers] = []
         self.received: dict[str, int] = {}  # response body bytes by path
         self._lock = threading.Lock()
 
@@ -53,13 +66,19 @@ class CountingTransport(httpx.HTTPTransport):
         body = request.read()
         with self._lock:
             self.requests.append((request.method, request.url.path, len(body)))
+            self.headers.append(request.headers)
         response = super().handle_request(request)
         if lose_answer:
             response.read()
             response.close()
             raise httpx.ReadTimeout("answer lost (test)", request=request)
         path = request.url.path
-        response.stream = _Counted(response.stream, lambda n: self._add_received(path, n))
+        cut_after = self.cut(request, n) if self.cut else None
+        response.stream = _Counted(
+            response.stream,  # type: ignore[arg-type]
+            lambda k: self._add_received(path, k),
+            cut_after,
+        )
         return response
 
     def _add_received(self, path: str, n: int) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import httpx
 import pytest
 from glint_client import Client, JobCancelled, NotFound, ValidationError
 from glint_client.models import Job
@@ -75,6 +76,23 @@ def test_download_verifies_resumes_and_skips(trained: tuple[str, str, Job], tmp_
         # chosen artifacts by glob
         chosen = c.download(job["id"], tmp_path / "renders-only", ["renders/*"])
         assert chosen and all(p.parent.name == "renders" for p in chosen)
+
+
+def test_follow_reconnects_with_last_event_id(trained: tuple[str, str, Job]) -> None:
+    """The event stream breaks off after the job's event: the follower opens it again
+    with Last-Event-ID, so the version it saw is not sent twice, and gets the end."""
+    url, key, job = trained
+
+    def cut_first_stream(request: httpx.Request, n: int) -> int | None:
+        return 2 if n == 1 else None  # "retry:", then the job event, then the cut
+
+    counter = CountingTransport(cut=cut_first_stream)
+    with Client(url, key, transport=counter) as c:
+        follower = c.follow(job["id"])
+        seen = list(follower)
+    assert [j["version"] for j in seen] == [job["version"]]
+    assert follower.end_state == "succeeded" and follower.reconnects == 1
+    assert [h.get("last-event-id") for h in counter.headers] == [None, str(job["version"])]
 
 
 def test_problem_json_arrives_as_typed_exception(
