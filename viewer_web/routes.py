@@ -3,6 +3,8 @@
 - ``GET /viewer/{job_id}``: the page (static HTML/JS/CSS under ``/viewer/static``).
 - ``WS /v1/jobs/{job_id}/viewer/ws?token=…``: the frame stream (docs/viewer.md).
 - ``GET /v1/jobs/{job_id}/viewer/envmap.png?token=…``: the env map, lat-long PNG.
+- ``GET /app``: the dashboard (static HTML/JS/CSS under ``/app/static``), which talks to
+  the public REST API only, with the key the user pastes (docs/dashboard.md).
 
 These authenticate with a viewer token (query parameter: browsers cannot set headers
 on WebSockets or <img> requests), which the API issues for the job's owner. They are
@@ -11,6 +13,7 @@ left out of the OpenAPI document, which describes the Bearer-key API.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Annotated
 
@@ -19,17 +22,32 @@ from fastapi import APIRouter, FastAPI, HTTPException, Query, Request
 from fastapi import Path as PathParam
 from fastapi.responses import FileResponse, Response
 from fastapi.staticfiles import StaticFiles
+from starlette.types import Scope
 from starlette.websockets import WebSocket
 
 from viewer_web.service import ViewerService
 
+PathLike = str | os.PathLike[str]
 STATIC = Path(__file__).resolve().parent / "static"
+APP_STATIC = STATIC / "app"
 
 JobId = Annotated[str, PathParam(max_length=40)]
 Token = Annotated[str | None, Query(max_length=1024)]
 
 api_router = APIRouter(prefix="/jobs/{job_id}/viewer", include_in_schema=False)
 page_router = APIRouter(include_in_schema=False)
+
+
+class RevalidatedFiles(StaticFiles):
+    """Static files that browsers re-check (ETag) before each use: the dashboard's modules
+    import one another, so a cached old module must never meet a new one."""
+
+    def file_response(
+        self, full_path: PathLike, stat_result: os.stat_result, scope: Scope, status_code: int = 200
+    ) -> Response:
+        response = super().file_response(full_path, stat_result, scope, status_code)
+        response.headers.setdefault("Cache-Control", "no-cache")
+        return response
 
 
 def _service(app: FastAPI) -> ViewerService:
@@ -40,6 +58,13 @@ def _service(app: FastAPI) -> ViewerService:
 def viewer_page(job_id: JobId) -> FileResponse:
     """The viewer page; it reads the job id from its own URL and the key from the fragment."""
     return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+
+@page_router.get("/app")
+@page_router.get("/app/")
+def dashboard_page() -> FileResponse:
+    """The dashboard: static, it calls the public ``/v1`` API with the key it is given."""
+    return FileResponse(APP_STATIC / "index.html", headers={"Cache-Control": "no-cache"})
 
 
 @api_router.websocket("/ws")
@@ -70,3 +95,4 @@ def mount(app: FastAPI, service: ViewerService, api_prefix: str = "/v1") -> None
     app.include_router(api_router, prefix=api_prefix)
     app.include_router(page_router)
     app.mount("/viewer/static", StaticFiles(directory=STATIC), name="viewer-static")
+    app.mount("/app/static", RevalidatedFiles(directory=APP_STATIC), name="app-static")
