@@ -321,8 +321,12 @@ class Client:
         with the right checksum are skipped."""
         arts = self.artifacts(job_id)
         if names:
-            chosen = [a for a in arts if any(fnmatch.fnmatchcase(a["name"], n) for n in names)]
-            missing = [n for n in names if not any(fnmatch.fnmatchcase(a["name"], n) for a in arts)]
+
+            def matches(name: str, pattern: str) -> bool:
+                return name == pattern or fnmatch.fnmatchcase(name, pattern)
+
+            chosen = [a for a in arts if any(matches(a["name"], n) for n in names)]
+            missing = [n for n in names if not any(matches(a["name"], n) for a in arts)]
             if missing:
                 raise GlintClientError(
                     f"job {job_id} has no artifact matching {', '.join(missing)} "

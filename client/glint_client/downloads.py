@@ -56,6 +56,7 @@ class Downloader:
         self.resumes = resumes
         self._on_bytes = on_bytes
         self._lock = threading.Lock()
+        self._stop = threading.Event()  # one file failed or the caller was interrupted
 
     def _progress(self, n: int) -> None:
         if self._on_bytes and n:
@@ -67,11 +68,13 @@ class Downloader:
         dest.mkdir(parents=True, exist_ok=True)
         for a in artifacts:
             local_path(dest, a["name"])  # refuse a bad name before fetching anything
+        self._stop.clear()
         with ThreadPoolExecutor(self.parallel, thread_name_prefix="glint-download") as pool:
             futures = [pool.submit(self.fetch, job_id, a, dest) for a in artifacts]
             try:
                 return [f.result() for f in futures]
             finally:
+                self._stop.set()  # the others stop at their next block (their .part stays)
                 for f in futures:
                     f.cancel()
 
@@ -118,6 +121,8 @@ class Downloader:
                         have = 0
                     with part.open("ab" if have else "wb") as out:
                         for block in r.iter_bytes(BLOCK):
+                            if self._stop.is_set():
+                                raise GlintClientError("download stopped")
                             out.write(block)
                             have += len(block)
                             self._progress(len(block))

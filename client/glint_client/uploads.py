@@ -33,6 +33,10 @@ MAX_STALLS = 5  # chunks in a row that moved the offset nowhere: give up, do not
 ByteCallback = Callable[[int], None]
 
 
+class _StoppedError(Exception):
+    """A file's upload ends early because another one failed (what arrived is kept)."""
+
+
 class Uploader:
     """Sends a scene's files, ``parallel`` at a time, each in chunks of at most
     ``chunk_bytes`` (or the server's ``chunk_max_bytes``, when smaller).
@@ -56,6 +60,7 @@ class Uploader:
         self.parallel = max(1, parallel)
         self._on_bytes = on_bytes
         self._lock = threading.Lock()
+        self._stop = threading.Event()  # set when one file failed or the caller was interrupted
 
     def _progress(self, n: int) -> None:
         if self._on_bytes and n > 0:
@@ -67,15 +72,17 @@ class Uploader:
         (what arrived stays on the server: run again to continue)."""
         if self.parallel == 1 or len(files) <= 1:
             return [self.upload(scene_id, f) for f in files]
+        self._stop.clear()
         pool = ThreadPoolExecutor(self.parallel, thread_name_prefix="glint-upload")
         futures: list[Future[Upload]] = [pool.submit(self.upload, scene_id, f) for f in files]
         try:
             done, _ = wait(futures, return_when=FIRST_EXCEPTION)
-            for fut in done:
+            for fut in done:  # the first failure (the others stop without one of their own)
                 if fut.exception() is not None:
                     raise cast(BaseException, fut.exception())
             return [fut.result() for fut in futures]
         finally:
+            self._stop.set()  # the others stop after their chunk in flight
             pool.shutdown(wait=True, cancel_futures=True)
 
     def start(self, scene_id: str, f: LocalFile, sha256: str) -> Upload:
@@ -128,6 +135,8 @@ class Uploader:
                             "did not complete"
                         )
                     offset = int(up["offset"])
+                if self._stop.is_set():
+                    raise _StoppedError
                 src.seek(offset)
                 data = src.read(min(chunk, f.size - offset))
                 if not data:

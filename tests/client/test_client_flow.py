@@ -8,7 +8,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from glint_client import Client, JobCancelled, NotFound, ValidationError
+from glint_client import Client, IntegrityError, JobCancelled, NotFound, ValidationError
 from glint_client.models import Job
 
 from tests.api.support import LiveServer
@@ -76,6 +76,37 @@ def test_download_verifies_resumes_and_skips(trained: tuple[str, str, Job], tmp_
         # chosen artifacts by glob
         chosen = c.download(job["id"], tmp_path / "renders-only", ["renders/*"])
         assert chosen and all(p.parent.name == "renders" for p in chosen)
+
+
+class Corrupting(httpx.HTTPTransport):
+    """Flips a bit in the first ``times`` artifact bodies (a damaged store or proxy)."""
+
+    def __init__(self, times: int) -> None:
+        super().__init__()
+        self.left = times
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        response = super().handle_request(request)
+        if "/artifacts/" not in request.url.path or self.left <= 0:
+            return response
+        self.left -= 1
+        data = response.read()
+        bad = bytes([data[0] ^ 1]) + data[1:]
+        return httpx.Response(response.status_code, headers=response.headers, content=bad)
+
+
+def test_a_download_is_checked_against_its_sha256(
+    trained: tuple[str, str, Job], tmp_path: Path
+) -> None:
+    url, key, job = trained
+    with Client(url, key, transport=Corrupting(1)) as c:  # once: fetched again, whole
+        (path,) = c.download(job["id"], tmp_path / "once", ["report.md"])
+        assert sha256(path) == next(
+            a["sha256"] for a in c.artifacts(job["id"]) if a["name"] == "report.md"
+        )
+    with Client(url, key, transport=Corrupting(2)) as c, pytest.raises(IntegrityError):
+        c.download(job["id"], tmp_path / "twice", ["report.md"])
+    assert list((tmp_path / "twice").iterdir()) == []  # neither the file nor a .part
 
 
 def test_follow_reconnects_with_last_event_id(trained: tuple[str, str, Job]) -> None:
