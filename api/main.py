@@ -26,6 +26,7 @@ from api.routers import (
     scenes,
     uploads,
     viewer,
+    webhooks,
     workers,
 )
 from api.service.db import Database
@@ -37,13 +38,15 @@ from api.service.scene_records import relativise_scene_records
 from api.service.settings import Settings, apply_to_core, get_settings
 from api.service.store import ArtifactStore, LocalStore, StoreProbe, make_store
 from api.service.sweeper import Sweeper
+from api.service.webhook_dispatch import Dispatcher
 from api.timing import ServerTimingMiddleware
 
 log = logging.getLogger("glint.api")
 
 # every router of the API, mounted under /v1 (each built with StrictJsonRoute)
 ROUTERS = tuple(
-    m.router for m in (keys, scenes, uploads, jobs, metrics, meshes, artifacts, workers, viewer)
+    m.router
+    for m in (keys, scenes, uploads, jobs, metrics, meshes, webhooks, artifacts, workers, viewer)
 )
 
 
@@ -143,6 +146,8 @@ def create_app(
         if isinstance(app.state.queue, CeleryQueue):
             # the workers reap too; the API's reaper requeues a job whose only worker died
             reaper = Reaper(database, settings, app.state.queue.enqueue).start()
+        # sends the webhook events of job ends, wherever the jobs ended (every replica runs one)
+        dispatcher = Dispatcher(database, settings).start()
         try:
             yield
         finally:
@@ -150,6 +155,7 @@ def create_app(
                 sweeper.close()
             if reaper is not None:
                 reaper.close()
+            dispatcher.close()
             close = getattr(app.state.queue, "close", None)
             if queue is None and callable(close):
                 close()

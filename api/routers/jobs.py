@@ -146,6 +146,7 @@ def create_job(
     existing = replayed(session, principal, CREATE_ROUTE, idempotency_key, request_body, response)
     if existing is not None:  # a retry: answer what the first request made
         return job_out(owned_job(session, principal, existing))
+    hook = job_webhook(session, principal, body.webhook, settings)  # 422: forbidden address
     scene = owned_scene(session, principal, body.scene_id)
     if scene.state != SceneState.READY:
         raise ApiError(
@@ -153,7 +154,6 @@ def create_job(
             "scene-not-ready",
             f"scene '{scene.id}' is {scene.state}; commit it (and pass validation) first",
         )
-    hook = job_webhook(session, principal, body.webhook, settings)  # 422: forbidden address
     cfg = body.config
     job = Job(
         id=new_id("job"),

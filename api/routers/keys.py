@@ -24,9 +24,10 @@ from api.deps import (
     SettingsDep,
     forbidden,
 )
+from api.job_webhook import checked
 from api.pages import Limit, Offset, page_rows
 from api.problems import ApiError, not_found, responses
-from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, Me, Page
+from api.schemas import Health, KeyCreate, KeyCreated, KeyOut, KeyWebhookOut, Me, Page, WebhookIn
 from api.service.models import ApiKey
 from api.strict_json import StrictJsonRoute
 
@@ -58,13 +59,50 @@ def health(database: DatabaseDep, request: Request) -> Health:
 @router.get(
     "/keys/me", response_model=Me, responses=responses(401), summary="The caller's owner and key"
 )
-def me(principal: PrincipalDep) -> Me:
+def me(principal: PrincipalDep, session: SessionDep) -> Me:
     return Me(
         owner=principal.owner,
         key_id=principal.key_id,
         name=principal.name,
         scope=principal.scope,  # type: ignore[arg-type]
+        webhook_url=session.scalar(select(ApiKey.webhook_url).where(ApiKey.id == principal.key_id)),
     )
+
+
+@router.put(
+    "/keys/me/webhook",
+    response_model=KeyWebhookOut,
+    responses=responses(400, 401, 403, 415, 422),
+    dependencies=[JsonBody],
+    summary="Set the default webhook of jobs created with this key (the secret is shown once)",
+)
+def set_key_webhook(
+    body: WebhookIn, principal: PrincipalDep, session: SessionDep, settings: SettingsDep
+) -> KeyWebhookOut:
+    """Jobs created with this key and no ``webhook`` of their own get this one (copied onto
+    the job when it is created: changing it later leaves existing jobs as they are)."""
+    hook = checked(body, settings, "body.url")
+    row = session.get(ApiKey, principal.key_id)
+    if row is None:  # revoked and gone between the lookup and now
+        raise not_found("key", principal.key_id)
+    row.webhook_url, row.webhook_secret = hook.url, hook.secret
+    session.commit()
+    return KeyWebhookOut(url=row.webhook_url, secret=row.webhook_secret)
+
+
+@router.delete(
+    "/keys/me/webhook",
+    status_code=204,
+    response_class=Response,
+    responses=responses(401, 403),
+    summary="Remove this key's default webhook (jobs that have it keep theirs)",
+)
+def delete_key_webhook(principal: PrincipalDep, session: SessionDep) -> Response:
+    row = session.get(ApiKey, principal.key_id)
+    if row is not None and row.webhook_url is not None:
+        row.webhook_url = row.webhook_secret = None
+        session.commit()
+    return Response(status_code=204)
 
 
 @router.get(

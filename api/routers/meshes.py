@@ -18,6 +18,7 @@ from fastapi import APIRouter, Query, Response
 
 from api.deps import JsonBody, PrincipalDep, QueueDep, SessionDep, SettingsDep, StoreDep, StoreUp
 from api.idempotent import IdempotencyKey, commit_or_replay, replayed
+from api.job_webhook import job_webhook, with_made_secret
 from api.problems import ApiError, FieldError, responses
 from api.routers.jobs import AUTH, JobId, enqueue, job_page, owned_job
 from api.schemas import JobOut, MeshCreate, Page
@@ -91,14 +92,16 @@ def create_mesh(
                 f"voxel {body.voxel:g} gives about {math.ceil(side / body.voxel)} voxels along "
                 f"the scene's box (side {side:.4g}), beyond this server's limit of {limit}",
             )
+    hook = job_webhook(session, principal, body.webhook, settings)  # 422: forbidden address
     mesh = Job(
         id=new_id("job"),
         owner=principal.owner,
         scene_id=parent.scene_id,
         kind=JobKind.MESH,
         parent_id=parent.id,
-        config=body.model_dump(mode="json"),
+        config=body.model_dump(mode="json", exclude={"webhook"}),  # mesh_run's parameters
         total_iterations=0,
+        **hook.columns(),
     )
     session.add(mesh)
     session.flush()
@@ -108,7 +111,7 @@ def create_mesh(
     if existing is not None:  # a request with the same key won the race
         return job_out(owned_job(session, principal, existing))
     enqueue(queue, mesh.id)
-    return job_out(mesh)
+    return with_made_secret(job_out(mesh), hook)
 
 
 def _box_side(outputs: Path | None) -> float | None:

@@ -172,8 +172,11 @@ def send(client: httpx.Client, claimed: Claimed, settings: Settings) -> Outcome:
     return Outcome(status, f"answered {status}")
 
 
-def record(database: Database, settings: Settings, claimed: Claimed, outcome: Outcome) -> str:
-    """Write an attempt's outcome; the delivery's state after it."""
+def record(
+    database: Database, settings: Settings, claimed: Claimed, outcome: Outcome
+) -> str | None:
+    """Write an attempt's outcome; the delivery's state after it, or None when the attempt
+    was no longer this dispatcher's (it outlived its lease and another one took over)."""
     now = _now()
     values: dict[str, Any] = {"last_status": outcome.status, "last_error": outcome.error}
     if outcome.error is None:
@@ -197,17 +200,21 @@ def record(database: Database, settings: Settings, claimed: Claimed, outcome: Ou
             .values(state=state, **values)
             .execution_options(synchronize_session=False)
         )
-        if res.rowcount == 1:  # the job's representation changed: new version, new ETag
-            s.execute(
-                update(Job)
-                .where(Job.id == claimed.job_id)
-                .values(version=Job.version + 1)
-                .execution_options(synchronize_session=False)
-            )
+        if res.rowcount != 1:
+            return None
+        # the job's representation changed: a new version (and ETag) for its readers
+        s.execute(
+            update(Job)
+            .where(Job.id == claimed.job_id)
+            .values(version=Job.version + 1)
+            .execution_options(synchronize_session=False)
+        )
     return state
 
 
-def attempt(database: Database, settings: Settings, client: httpx.Client, claimed: Claimed) -> str:
+def attempt(
+    database: Database, settings: Settings, client: httpx.Client, claimed: Claimed
+) -> str | None:
     """Send one claimed attempt and record it; the delivery's state after it."""
     outcome = send(client, claimed, settings)
     state = record(database, settings, claimed, outcome)
@@ -221,7 +228,7 @@ def attempt(database: Database, settings: Settings, client: httpx.Client, claime
         claimed.job_id,
         claimed.attempts,
         how,
-        state,
+        state or "not recorded: another dispatcher took the attempt over",
     )
     return state
 
