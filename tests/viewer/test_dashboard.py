@@ -1,9 +1,9 @@
 """The dashboard (/app) in headless Chromium (Debian's), driven like a user would.
 
-One flow from an uploaded folder to a downloaded mesh, with the page reloaded in the
-middle of the upload: the second selection of the same folder must send only the bytes
-the server does not hold. A second test drops a zip on the overview's drop zone (a new
-scene from an archive) and deletes that scene through the confirmation dialog. Every
+One flow from a dropped folder to a downloaded mesh, with the page reloaded in the middle
+of the upload: the second selection of the same folder must send only the bytes the
+server does not hold. A second test makes a scene from the sidebar, drops a zip on it (an
+archive, one request) and deletes the scene through the confirmation dialog. Every
 request the page makes must go to the server itself (no CDN, no font, no chart library).
 """
 
@@ -93,6 +93,17 @@ def page(owner: tuple[LiveServer, str]) -> Iterator:  # type: ignore[type-arg]
         assert not errors, f"page errors: {errors}"
 
 
+def drop_folder(page, selector: str, folder: Path) -> None:  # type: ignore[no-untyped-def]
+    """Drag a folder from disk onto an element, as a file manager does (DevTools protocol)."""
+    box = page.locator(selector).bounding_box()
+    x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
+    cdp = page.context.new_cdp_session(page)
+    data = {"items": [], "files": [str(folder)], "dragOperationsMask": 1}
+    for kind in ("dragEnter", "dragOver", "drop"):
+        cdp.send("Input.dispatchDragEvent", {"type": kind, "x": x, "y": y, "data": data})
+    cdp.detach()
+
+
 def server_holds(srv: LiveServer, key: str, scene_id: str) -> tuple[dict[str, int], set[str]]:
     """(open upload id → offset, paths of complete files) as the API reports them."""
     with srv.client(key) as c:
@@ -109,23 +120,22 @@ def test_upload_reload_resume_train_and_download_the_mesh(  # type: ignore[no-un
     srv, key = owner
     rec: Recorder = page.recorder
     folder = write_synthetic_scene(
-        tmp_path / "capture", "sphere", "glossy", n_train=6, n_test=2, size=24
+        tmp_path / "glossy sphere", "sphere", "glossy", n_train=6, n_test=2, size=24
     )
     files = scene_files(folder)
     total = sum(len(data) for _, data in files)
 
-    # a new scene from the sidebar, by keyboard
-    page.fill("#new-scene-name", "dashboard sphere")
-    page.press("#new-scene-name", "Enter")
-    page.wait_for_function("location.hash.startsWith('#/scenes/scn_')")
-    scene_id = page.evaluate("location.hash.split('/')[2]")
+    # the folder dropped on the overview (a real drop: Chromium reads the folder from disk)
+    # makes a scene named after it; the page pauses after PAUSE_AFTER chunks
+    page.evaluate("location.hash = '#/'")
     page.locator("#dropzone").wait_for()
-
-    # choose the folder; the page pauses after PAUSE_AFTER chunks, then is reloaded
     pausing = {**TUNING, "pauseAfterChunks": PAUSE_AFTER}
     page.evaluate(f"window.__glintUploadTuning = {json.dumps(pausing)}")
-    page.set_input_files("#pick-folder", folder)
+    drop_folder(page, "#dropzone", folder)
     page.locator("#upload-panel[data-state='paused']").wait_for(timeout=20_000)
+    assert page.inner_text("#main h1") == "glossy sphere"
+    scene_id = page.evaluate("location.hash.split('/')[2]")
+    assert scene_id.startswith("scn_")
     assert page.locator("#upload-panel li").count() == len(files)
     before = list(rec.chunks)
     partial, complete = server_holds(srv, key, scene_id)
@@ -140,7 +150,8 @@ def test_upload_reload_resume_train_and_download_the_mesh(  # type: ignore[no-un
     assert "Unfinished upload" in resume.inner_text()
     assert f"{len(complete)} of {len(files)} files are on the server" in resume.inner_text()
 
-    # the same folder again: complete files are skipped, partial ones go on from the offset
+    # the same folder again, chosen with the folder input this time: complete files are
+    # skipped, partial ones go on from the server's offset
     page.evaluate(f"window.__glintUploadTuning = {json.dumps(TUNING)}")
     page.set_input_files("#pick-folder", folder)
     page.locator("#upload-panel[data-state='done']").wait_for(timeout=20_000)
@@ -184,6 +195,14 @@ def test_upload_reload_resume_train_and_download_the_mesh(  # type: ignore[no-un
     href = page.get_attribute("#open-viewer", "href")
     assert href == f"/viewer/{job_id}#key={key}"
 
+    # another mesh from the checkpoint, at another grid: listed, followed, downloadable
+    page.select_option("#mesh-res", "64")
+    page.click("#mesh-start")
+    mesh = page.locator("#meshes li[data-state='succeeded']")
+    mesh.wait_for(timeout=60_000)
+    assert mesh.inner_text().startswith("64³ base")
+    assert mesh.locator("button[data-download='mesh.glb']").count() == 1
+
     if SCREENSHOT:
         page.screenshot(path=SCREENSHOT)
 
@@ -204,18 +223,21 @@ def test_upload_reload_resume_train_and_download_the_mesh(  # type: ignore[no-un
 
 
 def test_drop_a_zip_to_make_a_scene_then_delete_it(page, owner: tuple[LiveServer, str]) -> None:  # type: ignore[no-untyped-def]
-    """A zip dropped on the overview makes a scene named after it; deleting asks first."""
+    """A scene made from the sidebar takes a dropped zip (one request); deleting asks first."""
     srv, key = owner
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
         z.writestr("cap/images/a.txt", b"not really a photo")
         z.writestr("cap/images/b.txt", b"nor is this")
-    page.evaluate("location.hash = '#/'")
+    # a new scene from the sidebar, by keyboard
+    page.fill("#new-scene-name", "zip drop")
+    page.press("#new-scene-name", "Enter")
+    page.wait_for_function("location.hash.startsWith('#/scenes/scn_')")
     page.locator("#dropzone").wait_for()
     dt = page.evaluate_handle(
         """(b64) => { const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
         const dt = new DataTransfer();
-        dt.items.add(new File([bytes], 'drop test.zip', { type: 'application/zip' }));
+        dt.items.add(new File([bytes], 'capture.zip', { type: 'application/zip' }));
         return dt; }""",
         base64.b64encode(buf.getvalue()).decode(),
     )
@@ -225,7 +247,7 @@ def test_drop_a_zip_to_make_a_scene_then_delete_it(page, owner: tuple[LiveServer
     scene_id = page.evaluate("location.hash.split('/')[2]")
     with srv.client(key) as c:
         scene = c.get(f"/v1/scenes/{scene_id}").json()
-    assert scene["name"] == "drop test" and scene["file_count"] == 2
+    assert scene["name"] == "zip drop" and scene["file_count"] == 2
 
     # a failed commit names the file and the field; the scene stays open
     page.click("#commit")

@@ -5,7 +5,7 @@ import { drawChart } from "./chart.js";
 import {
   SceneUpload, dropRecord, loadRecords, openUploads, readDrop, readInput, recordOf, uploadArchive,
 } from "./upload.js";
-import { $, TERMINAL, enc, fmtAgo, fmtBytes, fmtDuration, h, sceneName } from "./util.js";
+import { $, TERMINAL, append, enc, fmtAgo, fmtBytes, fmtDuration, h, sceneName } from "./util.js";
 
 const KEY_STORE = "glint-dashboard-key";
 const POLL_MS = 3000;
@@ -254,10 +254,11 @@ function renderLists() {
     (li, j) => {
       const a = li.firstChild;
       a.href = `#/jobs/${j.id}`;
-      a.querySelector(".name").textContent = `${sceneNameOf(j.scene_id)} · ${j.id.slice(-6)}`;
+      a.querySelector(".name").textContent = sceneNameOf(j.scene_id);
+      a.title = j.id;
       pill(a.querySelector(".pill"), j.state, j.cancel_requested && j.state === "running" ? "cancelling" : j.state);
       a.querySelector(".bar > span").style.width = `${Math.round((j.progress || 0) * 100)}%`;
-      a.querySelector(".meta").textContent = jobLine(j);
+      a.querySelector(".meta").textContent = [`…${j.id.slice(-6)}`, jobLine(j)].filter(Boolean).join(" · ");
     });
   if (!S.jobs.length) $("#job-list").replaceChildren(h("li", { class: "empty muted" }, "No jobs yet."));
   markCurrent();
@@ -494,7 +495,7 @@ function overview() {
   };
   const records = Object.entries(loadRecords()).filter(([, r]) => r.owner === S.me.owner);
   const running = h("p", { class: "muted" });
-  el.append(
+  append(el, [
     h("h1", { tabindex: -1 }, "Overview"),
     h("section", { class: "card" },
       h("h2", null, "Start a scene"),
@@ -507,7 +508,7 @@ function overview() {
         h("a", { href: `#/scenes/${id}` }, r.sceneName || id), ` — ${r.files.length} files; open the scene and drop the same folder again to go on`))))
       : null,
     h("section", { class: "card" }, h("h2", null, "Jobs"), running,
-      h("p", { class: "muted small" }, "Open a job on the left for its chart, stages, artifacts, mesh and live viewer.")));
+      h("p", { class: "muted small" }, "Open a job on the left for its chart, stages, artifacts, mesh and live viewer."))]);
   const onLists = () => {
     const by = (st) => S.jobs.filter((j) => j.state === st).length;
     running.textContent = `${by("running")} running · ${by("queued")} queued · ${by("succeeded")} succeeded · ${by("failed")} failed (of the latest ${S.jobs.length})`;
@@ -645,8 +646,8 @@ function sceneView(id) {
 
   // after a reload: what the local record and the server say is left to send
   async function renderResume() {
-    const up = S.uploads.get(id);
-    if (up && !up.finished) { resumeBox.hidden = true; return; }
+    const running = () => S.uploads.has(id) && !S.uploads.get(id).finished;
+    if (running()) { resumeBox.hidden = true; return; }
     const rec = recordOf(id, S.me.owner);
     let open = [];
     try { open = await openUploads(id); } catch (e) { console.warn(e); }
@@ -666,10 +667,12 @@ function sceneView(id) {
     } else {
       rows = open.map((u) => [u.path, u.size, u.offset, `${Math.floor((100 * u.offset) / (u.size || 1))} % sent`]);
     }
+    if (!alive || running()) return; // the files were chosen again meanwhile
     const total = rows.length;
     const forget = h("button", { type: "button", class: "small" }, "Forget this upload");
     forget.addEventListener("click", () => { dropRecord(id); resumeBox.hidden = true; renderLists(); });
-    resumeBox.replaceChildren(
+    resumeBox.replaceChildren();
+    append(resumeBox, [
       h("p", null, h("strong", null, "Unfinished upload. "),
         rec ? `${done} of ${total} files are on the server, ${rows.filter((r) => r[2] > 0 && r[2] < r[1]).length} partly. `
           : `The server holds ${total} unfinished file(s) for this scene. `,
@@ -677,7 +680,7 @@ function sceneView(id) {
       h("ul", { class: "files", "aria-label": "files of the unfinished upload" }, rows.slice(0, 500).map(([path, size, got, text]) =>
         h("li", { dataset: { path } }, h("span", { class: "path" }, path), h("span", { class: "size muted" }, fmtBytes(size)),
           h("progress", { max: size || 1, value: got, "aria-label": path }), h("span", { class: "st" }, text)))),
-      rec ? h("div", { class: "row" }, forget) : null);
+      rec ? h("div", { class: "row" }, forget) : null]);
     resumeBox.hidden = false;
   }
 
@@ -864,10 +867,11 @@ function jobView(id) {
   const artTotal = h("span", { class: "count" });
   const artBody = h("tbody");
   const artNote = h("p", { class: "muted small" }, "Loading…");
+  const artTable = h("div", { class: "scroll", hidden: true }, h("table", { class: "table", id: "artifacts" },
+    h("thead", null, h("tr", null, h("th", null, "name"), h("th", { class: "num" }, "size"), h("th", null, h("span", { class: "visually-hidden" }, "download")))),
+    artBody));
   const artSec = h("section", { class: "card" }, h("h2", null, "Artifacts ", artTotal), artNote,
-    h("div", { class: "scroll" }, h("table", { class: "table", id: "artifacts" },
-      h("thead", null, h("tr", null, h("th", null, "name"), h("th", { class: "num" }, "size"), h("th", null, h("span", { class: "visually-hidden" }, "download")))),
-      artBody)));
+    artTable);
 
   el.append(
     h("header", { class: "viewhead" }, h("div", { class: "titles" }, title, statePill),
@@ -977,6 +981,7 @@ function jobView(id) {
       artTotal.textContent = arts.length ? `(${arts.length} files, ${fmtBytes(arts.reduce((n, a) => n + a.size, 0))})` : "";
       artNote.textContent = arts.length ? "" : job && !TERMINAL.has(job.state) ? "Listed when the job ends." : "None.";
       artNote.hidden = !!arts.length;
+      artTable.hidden = !arts.length;
       artBody.replaceChildren(...arts.map((a) => h("tr", { dataset: { name: a.name } },
         h("td", null, a.name), h("td", { class: "num" }, fmtBytes(a.size)), h("td", null, downloadButton(id, a)))));
       meshArtifacts.set(id, arts);

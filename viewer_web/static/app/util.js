@@ -14,7 +14,8 @@ export function h(tag, props, ...kids) {
   return el;
 }
 
-function append(el, kids) {
+/** Append children, skipping null/false and flattening arrays (DOM append writes "null"). */
+export function append(el, kids) {
   for (const kid of kids) {
     if (kid == null || kid === false) continue;
     if (Array.isArray(kid)) append(el, kid);
