@@ -6,6 +6,7 @@ terminal; then training still logs a line per phase change, unless quiet.
 from __future__ import annotations
 
 import sys
+import threading
 from typing import Any, TextIO
 
 from tqdm import tqdm
@@ -33,29 +34,37 @@ class ByteBar:
     may be called from several threads (tqdm locks)."""
 
     def __init__(self, desc: str, *, enabled: bool) -> None:
-        self.bar: tqdm[Any] | None = None
-        if enabled:
-            self.bar = tqdm(
-                desc=desc,
-                total=None,
-                unit="B",
-                unit_scale=True,
-                unit_divisor=1024,
-                file=sys.stderr,
-                dynamic_ncols=True,
-                leave=True,
-            )
+        self.desc = desc
+        self.enabled = enabled
+        self.bar: tqdm[Any] | None = None  # drawn from the first total or bytes on
         self.done = 0
+        self._lock = threading.Lock()
+
+    def _open(self, total: int | None) -> tqdm[Any]:
+        with self._lock:
+            if self.bar is None:
+                self.bar = tqdm(
+                    desc=self.desc,
+                    total=total,
+                    initial=self.done,
+                    unit="B",
+                    unit_scale=True,
+                    unit_divisor=1024,
+                    file=sys.stderr,
+                    dynamic_ncols=True,
+                )
+            return self.bar
 
     def set_total(self, total: int) -> None:
-        if self.bar is not None:
-            self.bar.total = total
-            self.bar.refresh()
+        if self.enabled:
+            bar = self._open(total)
+            bar.total = total
+            bar.refresh()
 
     def update(self, n: int) -> None:
         self.done += n
-        if self.bar is not None:
-            self.bar.update(n)
+        if self.enabled:
+            self._open(None).update(n)
 
     def close(self) -> None:
         if self.bar is not None:
@@ -114,7 +123,13 @@ class TrainingBar:
         total = int(job.get("total_iterations") or 0) or None
         if self.bar is None:
             self.bar = tqdm(
-                desc="training", total=total, unit="it", file=sys.stderr, dynamic_ncols=True
+                desc="training",
+                total=total,
+                unit="it",
+                file=sys.stderr,
+                dynamic_ncols=True,
+                # the time left is the server's (postfix), not tqdm's guess from the rate
+                bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} [{elapsed}{postfix}]",
             )
         if total and self.bar.total != total:
             self.bar.total = total
