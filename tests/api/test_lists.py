@@ -31,8 +31,10 @@ def test_every_list_in_the_openapi_document_is_a_page(server: LiveServer) -> Non
         "/v1/keys",
         "/v1/scenes",
         "/v1/scenes/{scene_id}/files",
+        "/v1/scenes/{scene_id}/uploads",
         "/v1/jobs",
         "/v1/jobs/{job_id}/meshes",
+        "/v1/jobs/{job_id}/webhooks",
         "/v1/jobs/{job_id}/artifacts",
         "/v1/workers",
     }

@@ -9,11 +9,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from api.service.db import Database
 from api.service.migrate import upgrade
 from api.service.models import DeliveryState, Job, Scene, WebhookDelivery
+from api.service.recovery import settle_dead_runners
 from api.service.settings import Settings
 from api.service.webhook_dispatch import Claimed, backoff_s, claim, due, record, send
 from api.service.webhook_guard import (
@@ -242,6 +243,39 @@ def _delivery(db: Database) -> str:
             )
         )
     return "whd_w"
+
+
+def test_the_reaper_records_the_ends_it_writes(database: Database) -> None:
+    """A job whose runners kept dying ends failed in the reaper: its event is recorded
+    there, once; a job it puts back in the queue has not ended."""
+    settings = Settings(max_attempts=2, heartbeat_s=1, stale_after_s=2)
+    stale = datetime.now(UTC) - timedelta(minutes=5)
+    with database.write() as s:
+        s.add(Scene(id="scn_r", owner="o", name="r"))
+        s.flush()
+        for job_id, deaths in (("job_dies", 1), ("job_again", 0)):
+            s.add(
+                Job(
+                    id=job_id,
+                    owner="o",
+                    scene_id="scn_r",
+                    config={},
+                    total_iterations=1,
+                    state="running",
+                    runner_deaths=deaths,
+                    heartbeat_at=stale,
+                    webhook_url="https://hooks.example.com/x",
+                    webhook_secret=SECRET,
+                )
+            )
+    settled = settle_dead_runners(database, settings)
+    assert (settled.failed, settled.requeued) == (["job_dies"], ["job_again"])
+    settle_dead_runners(database, settings)  # nothing more to settle: nothing more recorded
+    with database.read() as s:
+        rows = list(s.scalars(select(WebhookDelivery)))
+    assert [(r.job_id, r.event, r.state) for r in rows] == [("job_dies", "job.failed", "pending")]
+    assert rows[0].payload["job"]["state"] == "failed"
+    assert "the runner died 2 times" in rows[0].payload["job"]["error"]
 
 
 def test_an_attempt_is_claimed_once(database: Database) -> None:

@@ -213,6 +213,31 @@ def test_a_cancelled_job_with_a_made_secret(
     assert got.event["job"]["state"] == "cancelled"
 
 
+def test_each_end_of_a_resumed_job_is_an_event(
+    hooks: LiveServer, ready_scene: tuple[str, str], receiver: Receiver, held: ThreadQueue
+) -> None:
+    key, sid = ready_scene
+    with hooks.client(key) as c:
+        body = {"scene_id": sid, "webhook": {"url": receiver.url("/again"), "secret": SECRET}}
+        job = c.post("/v1/jobs", json=body).json()
+        for n in (1, 2, 3):
+            assert c.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "cancelled"
+            _settled(c, job["id"], n)
+            if n < 3:
+                assert c.post(f"/v1/jobs/{job['id']}/resume").json()["state"] == "queued"
+        items = _deliveries(c, job["id"])
+        page = c.get(f"/v1/jobs/{job['id']}/webhooks", params={"limit": 2, "offset": 2}).json()
+        shown = c.get(f"/v1/jobs/{job['id']}").json()["webhook"]["deliveries"]
+    assert [d["state"] for d in items] == ["delivered"] * 3
+    assert len({d["id"] for d in items}) == 3
+    times = [d["created_at"] for d in items]
+    assert times == sorted(times, reverse=True)
+    assert (page["total"], page["items"]) == (3, items[2:])
+    assert [d["id"] for d in shown] == [d["id"] for d in items]  # newest first there too
+    got = receiver.of(job["id"])
+    assert sorted(r.headers["Glint-Delivery"] for r in got) == sorted(d["id"] for d in items)
+
+
 def test_a_failing_receiver_is_retried_then_the_delivery_fails(
     hooks: LiveServer, ready_scene: tuple[str, str], receiver: Receiver, held: ThreadQueue
 ) -> None:
