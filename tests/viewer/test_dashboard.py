@@ -265,3 +265,29 @@ def test_drop_a_zip_to_make_a_scene_then_delete_it(page, owner: tuple[LiveServer
     page.wait_for_function("location.hash === '#/'")
     with srv.client(key) as c:
         wait_for(lambda: c.get(f"/v1/scenes/{scene_id}").status_code == 404, timeout=10)
+
+
+def test_the_page_hashes_large_files_in_slices_like_hashlib(page) -> None:  # type: ignore[no-untyped-def]
+    """Files above the whole-file limit are hashed in 4 MiB slices by the page's own
+    SHA-256: across slice boundaries and the padding cases it must agree with hashlib."""
+    import hashlib
+
+    sizes = [0, 55, 56, 64, 119, 4 * 1024 * 1024 + 17, 9 * 1024 * 1024 + 3]
+    got = page.evaluate(
+        """async (sizes) => {
+        const { hashFile } = await import('/app/static/sha256.js');
+        const out = [];
+        for (const n of sizes) {
+          const b = new Uint8Array(n);
+          for (let i = 0; i < n; i++) b[i] = (i * 31 + (i >> 11)) & 255;
+          out.push(await hashFile(new Blob([b]), { wholeMax: 0 }));
+        }
+        return out;
+        }""",
+        sizes,
+    )
+    want = [
+        hashlib.sha256(bytes((i * 31 + (i >> 11)) & 255 for i in range(n))).hexdigest()
+        for n in sizes
+    ]
+    assert got == want

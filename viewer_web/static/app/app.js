@@ -824,7 +824,7 @@ function jobView(id) {
   let job = null;
   let alive = true;
   let following = false;
-  let metricsIt = null;
+  let metricsIt; // undefined: the first update always reads the metrics
   let metricsRows = [];
   let previewUrl = null;
   let previewSha = null;
