@@ -156,13 +156,14 @@ class Client:
         for large archives :meth:`upload` (which unpacks locally) is the better way."""
         path = Path(archive)
         kind = "application/zip" if path.name.lower().endswith(".zip") else "application/x-tar"
-        r = self.http.request(
-            "POST",
-            f"/v1/scenes/{scene_id}/archive",
-            content=path.read_bytes(),
-            headers={"Content-Type": kind},
-            retry=False,
-        )
+        with path.open("rb") as body:  # streamed from disk, with its Content-Length
+            r = self.http.request(
+                "POST",
+                f"/v1/scenes/{scene_id}/archive",
+                content=body,
+                headers={"Content-Type": kind, "Content-Length": str(path.stat().st_size)},
+                retry=False,
+            )
         return cast(dict[str, Any], r.json())
 
     def uploads(self, scene_id: str) -> Iterator[Upload]:

@@ -13,7 +13,7 @@ import random
 import time
 from collections.abc import Iterator, Mapping
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, BinaryIO
 
 import httpx
 
@@ -107,13 +107,14 @@ class Http:
         *,
         params: Mapping[str, Any] | None = None,
         json: Any = None,
-        content: bytes | None = None,
+        content: bytes | BinaryIO | None = None,
         headers: Mapping[str, str] | None = None,
         ok: tuple[int, ...] = (),
         retry: bool | None = None,
     ) -> httpx.Response:
         """Send, retrying what may be retried; a status >= 400 not in ``ok`` raises the
-        typed error. ``retry`` overrides the method/Idempotency-Key rule."""
+        typed error. ``retry`` overrides the method/Idempotency-Key rule (a file given as
+        ``content`` is only ever sent once: pass ``retry=False`` with it)."""
         repeatable = self.may_repeat(method, headers) if retry is None else retry
         attempt = 0
         while True:

@@ -87,6 +87,10 @@ def test_archives_and_photos_become_scenes(glint: Client, scene_dir: Path, tmp_p
         scene = glint.create_scene_from(archive)
         assert scene["state"] == "ready" and scene["format"] == "blender", archive
         assert scene["name"] == "sphere"
+    # or as one request, unpacked by the server
+    scene_id = glint.create_scene("whole-archive")["id"]
+    assert len(glint.upload_archive(scene_id, tpath)["files"]) == scene["file_count"]
+    assert glint.commit(scene_id)["state"] == "ready"
 
     # photos without poses, given as files: top level, and commit says SfM is needed
     from tests.photo_capture import photo_files
