@@ -197,12 +197,18 @@ def test_a_cancelled_job_with_a_made_secret(
     key, sid = ready_scene
     url = receiver.url("/cancelled")
     with hooks.client(key) as c:
-        r = c.post("/v1/jobs", json={"scene_id": sid, "webhook": {"url": url}})
+        body, once = (
+            {"scene_id": sid, "webhook": {"url": url}},
+            {"Idempotency-Key": str(uuid.uuid4())},
+        )
+        r = c.post("/v1/jobs", json=body, headers=once)
         assert r.status_code == 201, r.text
         job = r.json()
         secret = job["webhook"]["secret"]  # made by the server, answered this once
         assert secret.startswith("whsec_") and len(secret) == 38
         assert "secret" not in c.get(f"/v1/jobs/{job['id']}").json()["webhook"]
+        again = c.post("/v1/jobs", json=body, headers=once).json()  # a retry: the same job
+        assert again["id"] == job["id"] and "secret" not in again["webhook"]
         listed = {j["id"]: j for j in list_all(c, "/v1/jobs")}
         assert "secret" not in listed[job["id"]]["webhook"]
         assert c.post(f"/v1/jobs/{job['id']}/cancel").json()["state"] == "cancelled"
