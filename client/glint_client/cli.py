@@ -231,9 +231,18 @@ def cmd_submit(args: argparse.Namespace) -> int:
             )
         if not args.quiet:
             say(_scene_report(scene))
+        hook = {"url": args.webhook} if args.webhook else None
         job = client.create_job(
-            scene["id"], config, iterations=args.iterations, time_budget=args.time, sfm=sfm
+            scene["id"],
+            config,
+            iterations=args.iterations,
+            time_budget=args.time,
+            sfm=sfm,
+            webhook=hook,
         )
+        secret = (job.get("webhook") or {}).get("secret")
+        if secret and not args.json:
+            say(f"webhook secret (keep it; it is not shown again): {secret}")
         if not args.json:
             print(job["id"], flush=True)
         if not (args.wait or args.download):
@@ -458,6 +467,9 @@ def add_commands(parser: argparse.ArgumentParser, prog: str) -> None:
     p.add_argument("--config", metavar="FILE", help="training config as a JSON file")
     p.add_argument(
         "--set", action="append", metavar="KEY=VALUE", help="config field, e.g. loss.scale=50"
+    )
+    p.add_argument(
+        "--webhook", metavar="URL", help="POST the job's end to this URL (signed; secret printed)"
     )
     p.add_argument(
         "--sfm",

@@ -8,6 +8,7 @@ Lists follow their pages; errors are the typed exceptions of :mod:`glint_client.
 from __future__ import annotations
 
 import fnmatch
+import secrets
 import uuid
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
@@ -223,7 +224,12 @@ class Client:
         idempotency_key: str | None = None,
     ) -> Job:
         """Start training on a ready scene. ``config`` is a TrainConfig (any fields);
-        ``iterations`` and ``time_budget`` (``"5m"``, seconds) are set on top of it."""
+        ``iterations`` and ``time_budget`` (``"5m"``, seconds) are set on top of it.
+
+        ``webhook`` ``{"url": ..., "secret": ...}`` has the server POST the job's end
+        there, signed with ``secret``; without one a secret is made here (not by the
+        server, whose secret a retried create would not repeat) and returned in the
+        job's ``webhook["secret"]``, as the server's answer would."""
         cfg = dict(config or {})
         if iterations is not None:
             cfg["iterations"] = iterations
@@ -232,9 +238,10 @@ class Client:
         body: dict[str, Any] = {"scene_id": scene_id, "config": cfg}
         if sfm is not None:
             body["sfm"] = dict(sfm)
-        if webhook is not None:
-            body["webhook"] = dict(webhook)
-        return cast(Job, self._create("/v1/jobs", body, idempotency_key))
+        hook = _with_secret(webhook)
+        if hook is not None:
+            body["webhook"] = hook
+        return _show_secret(cast(Job, self._create("/v1/jobs", body, idempotency_key)), hook)
 
     def get_job(self, job_id: str) -> Job:
         return cast(Job, self._json("GET", f"/v1/jobs/{job_id}"))
@@ -345,13 +352,42 @@ class Client:
             "GET", f"/v1/jobs/{job_id}/artifacts/{quote(name, safe='/')}"
         ).content
 
-    def create_mesh(self, job_id: str, *, idempotency_key: str | None = None, **params: Any) -> Job:
+    def create_mesh(
+        self,
+        job_id: str,
+        *,
+        webhook: Mapping[str, Any] | None = None,
+        idempotency_key: str | None = None,
+        **params: Any,
+    ) -> Job:
         """Extract another mesh from a succeeded training job (``resolution``, ``voxel``,
-        ``trunc``, ``color``, ``keep_fraction``, ``simplify``); a job of its own."""
-        return cast(Job, self._create(f"/v1/jobs/{job_id}/meshes", params, idempotency_key))
+        ``trunc``, ``color``, ``keep_fraction``, ``simplify``); a job of its own.
+        ``webhook`` as for :meth:`create_job`."""
+        hook = _with_secret(webhook)
+        body = {**params, **({"webhook": hook} if hook is not None else {})}
+        job = cast(Job, self._create(f"/v1/jobs/{job_id}/meshes", body, idempotency_key))
+        return _show_secret(job, hook)
 
     def meshes(self, job_id: str) -> Iterator[Job]:
         return self._pages(f"/v1/jobs/{job_id}/meshes")
+
+
+def _with_secret(webhook: Mapping[str, Any] | None) -> dict[str, Any] | None:
+    """The webhook with a secret of its own: a secret the server made is answered once,
+    in the 201 of the first try, so a create whose answer was lost would lose it."""
+    if webhook is None:
+        return None
+    hook = dict(webhook)
+    if not hook.get("secret"):
+        hook["secret"] = "whsec_" + secrets.token_hex(16)
+    return hook
+
+
+def _show_secret(job: Job, hook: Mapping[str, Any] | None) -> Job:
+    shown = job.get("webhook")
+    if hook is not None and isinstance(shown, dict):
+        shown["secret"] = hook["secret"]
+    return job
 
 
 def _scene_name(path: Path) -> str:

@@ -100,6 +100,7 @@ class Job(TypedDict):
     plan: NotRequired[dict[str, Any] | None]
     stage: NotRequired[dict[str, Any] | None]
     sfm: NotRequired[dict[str, Any] | None]
+    webhook: NotRequired[dict[str, Any] | None]
     created_at: str
     updated_at: NotRequired[str]
     started_at: NotRequired[str | None]

@@ -30,7 +30,8 @@ def scene_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="session")
 def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[LiveServer]:
-    settings = make_settings(tmp_path_factory.mktemp("client-server"))
+    # loopback webhooks allowed: a test receives one on a local port
+    settings = make_settings(tmp_path_factory.mktemp("client-server"), webhook_allow_private=True)
     srv = LiveServer(settings, ThreadQueue(settings)).start()
     yield srv
     srv.queue.join(60)
