@@ -217,6 +217,25 @@ def test_upload_reload_resume_train_and_download_the_mesh(  # type: ignore[no-un
     assert data == (run_dir / "mesh.glb").read_bytes()
     assert dl.value.suggested_filename == f"{job_id}_mesh.glb"
 
+    # a long job on the same scene, cancelled from its page, then deleted (asks first)
+    page.click(f"#main a[href='#/scenes/{scene_id}']")
+    page.locator("#train-form").wait_for()
+    page.fill("#train-iterations", "100000")
+    page.click("#train-form summary")
+    page.fill("#train-config", json.dumps(config))
+    page.click("#train-start")
+    other_job = f"location.hash.startsWith('#/jobs/') && !location.hash.includes('{job_id}')"
+    page.wait_for_function(other_job)
+    long_id = page.evaluate("location.hash.split('/')[2]")
+    page.locator("#job-cancel").click()
+    page.locator("#job-state[data-state='cancelled']").wait_for(timeout=30_000)
+    page.click("#job-delete")
+    page.click("#confirm-ok")
+    page.wait_for_function(f"location.hash === '#/scenes/{scene_id}'")
+    with srv.client(key) as c:
+        assert c.get(f"/v1/jobs/{long_id}").status_code == 404
+        assert c.get(f"/v1/jobs/{job_id}").json()["state"] == "succeeded"
+
     # nothing but the server (and the page's own blob: URLs) was asked for anything
     foreign = [u for u in rec.urls if not u.startswith((srv.url + "/", "blob:", "data:"))]
     assert not foreign, foreign

@@ -460,11 +460,13 @@ function uploadPanel(up) {
     const t = up.totals;
     bar.max = t.bytes || 1;
     bar.value = t.onServer;
-    const state = up.finished ? (t.done === t.files ? "done" : "incomplete") : up.paused ? "paused" : "running";
+    const state = up.finished ? (t.done === t.files ? "done" : "incomplete")
+      : up.paused ? (up.inflight ? "pausing" : "paused") : "running";
     el.dataset.state = state;
     pauseBtn.textContent = up.paused ? "Resume" : "Pause";
     pauseBtn.hidden = up.finished;
-    const extra = state === "paused" ? " · paused" : state === "incomplete"
+    const extra = state === "paused" ? " · paused" : state === "pausing" ? " · pausing after the chunks under way"
+      : state === "incomplete"
       ? ` · ${t.failed} failed: fix them and drop the files again` : state === "done" ? " · done" : "";
     summary.textContent = `${t.done} of ${t.files} files · ${fmtBytes(t.onServer)} of ${fmtBytes(t.bytes)} on the server` +
       `${t.present ? ` (${t.present} were already there)` : ""}${up.fatal ? ` · stopped: ${up.fatal}` : ""}${extra}`;

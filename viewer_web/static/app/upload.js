@@ -137,6 +137,7 @@ export class SceneUpload {
     this.hashWholeMax = tuning.hashWholeMax ?? HASH_WHOLE_MAX;
     this.pauseAfterChunks = tuning.pauseAfterChunks ?? null;
     this.chunks = 0;
+    this.inflight = 0; // PATCH requests under way (a pause waits for them)
     this.bytesSent = 0;
     this.paused = false;
     this.stopped = false;
@@ -263,11 +264,17 @@ export class SceneUpload {
       try {
         // read the chunk first: a file that changed or vanished on disk fails here, not mid-request
         const body = await f.file.slice(from, to).arrayBuffer();
-        next = await getJson(`${base}/${enc(upl.id)}`, {
-          method: "PATCH",
-          headers: { "Upload-Offset": String(from), "Content-Type": "application/offset+octet-stream" },
-          body,
-        });
+        this.inflight += 1;
+        try {
+          next = await getJson(`${base}/${enc(upl.id)}`, {
+            method: "PATCH",
+            headers: { "Upload-Offset": String(from), "Content-Type": "application/offset+octet-stream" },
+            body,
+          });
+        } finally {
+          this.inflight -= 1;
+          if (this.paused) this.emit(f);
+        }
       } catch (e) {
         if (e instanceof ApiError && e.type === "offset-mismatch" && Number.isFinite(e.problem.offset)) {
           f.offset = e.problem.offset; // the server holds more (or less): go on from there
