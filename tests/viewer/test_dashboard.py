@@ -2,9 +2,11 @@
 
 One flow from a dropped folder to a downloaded mesh, with the page reloaded in the middle
 of the upload: the second selection of the same folder must send only the bytes the
-server does not hold; a second, long job is cancelled and deleted. A second test makes a scene from the sidebar, drops a zip on it (an
-archive, one request) and deletes the scene through the confirmation dialog. Every
-request the page makes must go to the server itself (no CDN, no font, no chart library).
+server does not hold; then a second, long job is cancelled and deleted. Another test
+makes a scene from the sidebar, drops a zip on it (an archive, one request) and deletes
+the scene through the confirmation dialog; a third holds the page's SHA-256 to hashlib.
+Every request the page makes must go to the server itself (no CDN, no font, no chart
+library).
 """
 
 from __future__ import annotations
