@@ -12,6 +12,7 @@ go on: asking again tells it where to continue, and it never resends what arrive
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Sequence
 from concurrent.futures import FIRST_EXCEPTION, Future, ThreadPoolExecutor, wait
 from typing import Any, cast
@@ -21,6 +22,7 @@ from glint_client.errors import (
     GlintClientError,
     NotFound,
     OffsetMismatch,
+    ServerError,
 )
 from glint_client.files import LocalFile, sha256_of
 from glint_client.http import Http
@@ -29,6 +31,7 @@ from glint_client.models import Upload
 DEFAULT_CHUNK_BYTES = 8 << 20
 OFFSET_CONTENT_TYPE = "application/offset+octet-stream"
 MAX_STALLS = 5  # chunks in a row that moved the offset nowhere: give up, do not spin
+MAX_CHUNK_FAULTS = 3  # 5xx answers to one chunk in a row before the upload gives up
 
 ByteCallback = Callable[[int], None]
 
@@ -121,7 +124,7 @@ class Uploader:
         url = f"/v1/scenes/{scene_id}/uploads/{upload_id}"
         chunk = min(self.chunk_bytes, int(up.get("chunk_max_bytes") or self.chunk_bytes))
         offset = int(up["offset"])
-        stalls = 0
+        stalls = faults = 0
         with f.source.open("rb") as src:
             while True:
                 if offset >= f.size:
@@ -144,6 +147,17 @@ class Uploader:
                 headers = {"Upload-Offset": str(offset), "Content-Type": OFFSET_CONTENT_TYPE}
                 try:
                     r = self.http.request("PATCH", url, content=data, headers=headers)
+                except ServerError:
+                    # a chunk refused by a server fault: the offset says whether it was
+                    # kept (the server only ever moves it for a chunk it holds whole)
+                    faults += 1
+                    if faults > MAX_CHUNK_FAULTS:
+                        raise
+                    time.sleep(0.1 * 2**faults)
+                    server = self._offset(url)
+                    self._progress(server - offset)
+                    offset = server
+                    continue
                 except OffsetMismatch as exc:
                     # a retried chunk that had arrived, or another client on the same file
                     server = exc.offset if exc.offset is not None else self._offset(url)
@@ -151,6 +165,7 @@ class Uploader:
                     stalls = stalls + 1 if server == offset else 0
                     offset = server
                 else:
+                    faults = 0
                     up = cast(Upload, r.json())
                     new = int(up["offset"]) if up["state"] != "complete" else f.size
                     self._progress(new - offset)

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import httpx
 import pytest
-from glint_client import Client, GlintClientError
+from glint_client import Client, GlintClientError, ServerError
 
 from tests.api.support import LiveServer
 from tests.client.support import CountingTransport, Killed, sha256
@@ -110,3 +110,37 @@ def test_archives_and_photos_become_scenes(glint: Client, scene_dir: Path, tmp_p
         z.writestr("../outside.txt", b"x")
     with pytest.raises(GlintClientError, match="outside"):
         glint.create_scene_from(evil)
+
+
+class FailingChunks(httpx.HTTPTransport):
+    """Answers ``fail`` chunk PATCHes with a 500 problem without passing them on."""
+
+    def __init__(self, fail: set[int]) -> None:
+        super().__init__()
+        self.fail = fail
+        self.patches = 0
+
+    def handle_request(self, request: httpx.Request) -> httpx.Response:
+        if request.method == "PATCH":
+            self.patches += 1
+            if self.patches in self.fail:
+                problem = {"type": "urn:glint:problem:internal-error", "status": 500}
+                return httpx.Response(500, json=problem, request=request)
+        return super().handle_request(request)
+
+
+def test_a_chunk_refused_by_a_server_fault_is_sent_again(
+    server: LiveServer, key: str, tmp_path: Path
+) -> None:
+    data = os.urandom(5 * CHUNK + 100)
+    (tmp_path / "f.bin").write_bytes(data)
+    transport = FailingChunks({2, 4, 5})
+    with Client(server.url, key, transport=transport) as c:
+        scene_id = c.create_scene("faults")["id"]
+        (up,) = c.upload(scene_id, tmp_path / "f.bin", chunk_bytes=CHUNK)
+        assert up["state"] == "complete" and transport.patches == 6 + 3
+        assert [f["sha256"] for f in c.scene_files(scene_id)] == [sha256(tmp_path / "f.bin")]
+
+    transport = FailingChunks({1, 2, 3, 4})  # more faults in a row than the client takes
+    with Client(server.url, key, transport=transport) as c, pytest.raises(ServerError):
+        c.upload(c.create_scene("down")["id"], tmp_path / "f.bin", chunk_bytes=CHUNK)
