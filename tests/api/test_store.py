@@ -77,3 +77,29 @@ def test_sweep_tmp_removes_only_old_leftovers(tmp_path: Path) -> None:
     assert store.sweep_tmp() == 1
     assert [p.name for p in store.tmp_dir.iterdir()] == [new._tmp.name]
     new.abort()
+
+
+def test_a_commit_survives_a_delete_pruning_its_folder(tmp_path: Path, monkeypatch) -> None:
+    """A delete prunes the folders it emptied. With parallel chunked uploads of one
+    scene, that can remove ``uploads/`` between another commit's mkdir and its move;
+    the commit makes the folder again instead of failing (it answered 500)."""
+    import api.service.store.local as local
+
+    store = LocalStore(tmp_path)
+    store.put("scenes/s/uploads/u1/c0", [b"first"])
+    pending = store.begin("scenes/s/uploads/u2/c0")
+    pending.write(b"second")
+    real_replace, raced = os.replace, []
+
+    def replace_after_a_prune(src, dst):  # type: ignore[no-untyped-def]
+        if not raced:  # u1 finishes in between: its delete empties and prunes uploads/
+            raced.append(True)
+            Path(dst).parent.rmdir()  # (the folder our mkdir had just made was empty)
+            store.delete("scenes/s/uploads/u1")
+            assert not (tmp_path / "scenes/s/uploads").exists()
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(local.os, "replace", replace_after_a_prune)
+    assert pending.commit().size == 6
+    with store.open("scenes/s/uploads/u2/c0") as fh:
+        assert fh.read() == b"second"

@@ -29,6 +29,20 @@ from api.service.store.base import (
 from api.service.store.keys import check_key
 
 
+def _replace_into(source: Path, target: Path, tries: int = 5) -> None:
+    """Move ``source`` to ``target``, making its folders. A delete elsewhere in the store
+    prunes folders it emptied (``_prune_empty_parents``), which can remove ``target``'s
+    parent between the mkdir and the move: make it again and retry."""
+    for attempt in range(tries):
+        try:
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(source, target)
+            return
+        except FileNotFoundError:
+            if attempt == tries - 1 or not source.exists():
+                raise
+
+
 class _LocalPendingWrite:
     def __init__(self, store: LocalStore, key: str) -> None:
         self._store = store
@@ -60,8 +74,7 @@ class _LocalPendingWrite:
         try:
             if target.is_dir():
                 raise StoreError(f"'{self._key}' is a folder")
-            target.parent.mkdir(parents=True, exist_ok=True)
-            os.replace(self._tmp, target)
+            _replace_into(self._tmp, target)
         except (NotADirectoryError, FileExistsError, IsADirectoryError) as exc:
             self._tmp.unlink(missing_ok=True)
             raise StoreError(f"'{self._key}' collides with an existing file or folder") from exc
