@@ -232,14 +232,21 @@ def cmd_submit(args: argparse.Namespace) -> int:
         if not args.quiet:
             say(_scene_report(scene))
         hook = {"url": args.webhook} if args.webhook else None
-        job = client.create_job(
-            scene["id"],
-            config,
-            iterations=args.iterations,
-            time_budget=args.time,
-            sfm=sfm,
-            webhook=hook,
-        )
+        try:
+            job = client.create_job(
+                scene["id"],
+                config,
+                iterations=args.iterations,
+                time_budget=args.time,
+                sfm=sfm,
+                webhook=hook,
+            )
+        except GlintAPIError:  # the upload is done: say how to reuse it
+            say(
+                f"the scene {scene['id']} is uploaded and {scene['state']}; after fixing the "
+                f"job's options, add --scene {scene['id']} to send nothing again"
+            )
+            raise
         secret = (job.get("webhook") or {}).get("secret")
         if secret and not args.json:
             say(f"webhook secret (keep it; it is not shown again): {secret}")
