@@ -82,6 +82,8 @@ def _job_exit(job: Job) -> int:
 
 def _job_summary(job: Job) -> str:
     text = f"job {job['id']} {job['state']}"
+    if job.get("kind") == "mesh":  # its progress is the mesh stage, not iterations
+        return text + (f": {job['error']}" if job.get("error") else "")
     if job["state"] == "succeeded":
         m = job.get("metrics") or {}
         bits = [f"{job.get('iteration')} iterations in {duration(job.get('elapsed_s'))}"]
@@ -250,20 +252,25 @@ def cmd_submit(args: argparse.Namespace) -> int:
         secret = (job.get("webhook") or {}).get("secret")
         if secret and not args.json:
             say(f"webhook secret (keep it; it is not shown again): {secret}")
-        if not args.json:
-            print(job["id"], flush=True)
-        if not (args.wait or args.download):
-            if args.json:
-                emit(args, "", job)
-            return EXIT_OK
-        job = _follow(client, args, job["id"])
-        if not args.quiet:
-            say(_job_summary(job))
-        if args.download and job["state"] == "succeeded":
-            _download(client, args, job["id"], args.download)
+        return _started(client, args, job)
+
+
+def _started(client: Client, args: argparse.Namespace, job: Job) -> int:
+    """A job was just created: print its id, and follow and download it when asked."""
+    if not args.json:
+        print(job["id"], flush=True)
+    if not (args.wait or args.download):
         if args.json:
             emit(args, "", job)
-        return _job_exit(job)
+        return EXIT_OK
+    job = _follow(client, args, job["id"])
+    if not args.quiet:
+        say(_job_summary(job))
+    if args.download and job["state"] == "succeeded":
+        _download(client, args, job["id"], args.download)
+    if args.json:
+        emit(args, "", job)
+    return _job_exit(job)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -363,21 +370,7 @@ def cmd_mesh(args: argparse.Namespace) -> int:
         if v is not None
     }
     with _client(args) as client:
-        job = client.create_mesh(args.job, **params)
-        if not args.json:
-            print(job["id"], flush=True)
-        if not (args.wait or args.download):
-            if args.json:
-                emit(args, "", job)
-            return EXIT_OK
-        job = _follow(client, args, job["id"])
-        if not args.quiet:
-            say(_job_summary(job))
-        if args.download and job["state"] == "succeeded":
-            _download(client, args, job["id"], args.download)
-    if args.json:
-        emit(args, "", job)
-    return _job_exit(job)
+        return _started(client, args, client.create_mesh(args.job, **params))
 
 
 # --- errors to exit codes ----------------------------------------------------------------

@@ -88,7 +88,7 @@ def job_line(job: Job) -> str:
             f"{stage.get('name')} {stage.get('step')} {stage.get('done')}/{stage['total']}"
         )
     total = job.get("total_iterations") or 0
-    if total:
+    if total and job.get("kind") != "mesh":  # a mesh job's progress is its stage
         parts.append(f"iteration {job.get('iteration', 0)}/{total}")
     psnr = (job.get("metrics") or {}).get("psnr")
     if psnr is not None:
