@@ -28,7 +28,7 @@ SOURCES = {top: ROOT / top for top in CODE} | {"glint_client": ROOT / "client" /
 
 # core's packages, lowest first; a module may import its own layer and those below
 CORE_LAYERS: tuple[tuple[str, ...], ...] = (
-    ("core", "core.errors", "core.config", "core.devices"),
+    ("core", "core.errors", "core.config", "core.devices", "core.stages"),
     ("core.kernels",),
     ("core.scene",),
     ("core.render",),

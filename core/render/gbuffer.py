@@ -13,6 +13,7 @@ from torch import Tensor
 from core.render.gbuffer_compiled import can_build_compiled, features_compiled
 from core.render.raster import RasterResult, rasterize
 from core.scene.cameras import Camera
+from core.stages import stage
 
 if TYPE_CHECKING:
     from core.render.gaussians import Gaussians
@@ -193,7 +194,8 @@ def render_gbuffer_tensors(
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
     screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
     """
-    feats = gbuffer_features(means, colors, normals_world, w_r, camera)
+    with stage("features"):
+        feats = gbuffer_features(means, colors, normals_world, w_r, camera)
     if near is None:
         near = near_plane(feats[:, _C_Z])
     res = rasterize(
@@ -236,13 +238,17 @@ def render_gbuffer(
 ) -> tuple[GBuffer, RasterResult]:
     """G-buffer of a Gaussian model for one view (SH evaluated toward this camera)."""
     op = gaussians.opacities if opacity_scale is None else gaussians.opacities * opacity_scale
+    with stage("sh_colors"):
+        colors = gaussians.colors(camera, sh_degree)
+    with stage("normals"):
+        normals = gaussians.normals()
     return render_gbuffer_tensors(
         gaussians.params["means"],
         gaussians.unit_quats,
         gaussians.scales,
         op,
-        gaussians.colors(camera, sh_degree),
-        gaussians.normals(),
+        colors,
+        normals,
         gaussians.w_r,
         camera,
         backend=backend,

@@ -24,6 +24,7 @@ from torch import Tensor
 from core.render.envmap import EnvMap
 from core.render.gbuffer import GBuffer
 from core.render.shading_compiled import can_shade_compiled, shade_compiled
+from core.stages import stage
 
 
 @dataclass
@@ -105,5 +106,7 @@ def deferred_shade(
         return ShadeResult(final, base, specular, w_r, refl)
     _, view = cam.world_rays(dtype=base.dtype, device=base.device)
     refl = reflect(view, world_normals(gbuffer))
-    specular = w_r.unsqueeze(-1) * envmap.sample(refl)
+    with stage("envmap_lookup"):
+        radiance = envmap.sample(refl)
+    specular = w_r.unsqueeze(-1) * radiance
     return ShadeResult(base + specular + fill, base, specular, w_r, refl)

@@ -43,6 +43,7 @@ from core.render.raster import resolve_backend
 from core.render.shading import ShadeResult, deferred_shade
 from core.render.view_opacity import view_opacity_scale
 from core.scene.views import Scene, View
+from core.stages import stage
 from core.training.budget import TimeBudget
 from core.training.densify import DensifyStrategy
 from core.training.init_points import visual_hull_points
@@ -118,11 +119,13 @@ def forward_view(
 ) -> tuple[GBuffer, ShadeResult, Any]:
     """The training forward pass of one view: G-buffer + deferred shading for ``phase``
     (with gradients; readers of a trained model use ``TrainedModel.render``)."""
-    gb, res = render_gbuffer(
-        gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
-        antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
-    )  # fmt: skip
-    shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
+    with stage("gbuffer"):
+        gb, res = render_gbuffer(
+            gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
+            antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
+        )  # fmt: skip
+    with stage("deferred_shading"):
+        shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
     return gb, shade, res
 
 
@@ -385,76 +388,95 @@ class Trainer:
         return ratios
 
     def step(self) -> dict[str, float]:
+        # ``stage`` labels (torch profiler ranges, ~µs each) let bench/step_breakdown.py
+        # say where a step's time goes, forward and backward.
         cfg, it = self.cfg, self.iteration
         phase = self.current_phase()
         set_lr(self.optimizers["means"], means_lr(self.sched, it, self.radius))
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
-        cull = view_opacity_scale(
-            self.gaussians, view.camera, one_sided=phase.one_sided, grazing=phase.grazing
-        )
+        with stage("view_opacity"):
+            cull = view_opacity_scale(
+                self.gaussians, view.camera, one_sided=phase.one_sided, grazing=phase.grazing
+            )
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
             absgrad=cfg.densify.absgrad, opacity_scale=cull,
         )  # fmt: skip
         self.strategy.step_pre_backward(res)
-        target = view.composited(bg)
-        terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
-        if phase.scale_loss and cfg.loss.scale > 0:
-            # Eq. 7 in units of the scene radius: in world units the same capture in
-            # millimetres or kilometres would weigh flatness 1e6× differently.
-            terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales / self.radius)
-        depth, valid = geometry_depth(gb, phase.planar_depth)
-        if view.mask is not None:
-            valid = valid & (view.mask > 0.5)
+        with stage("rgb_loss"):
+            target = view.composited(bg)
+            terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
+            if phase.scale_loss and cfg.loss.scale > 0:
+                # Eq. 7 in units of the scene radius: in world units the same capture in
+                # millimetres or kilometres would weigh flatness 1e6× differently.
+                terms["scale"] = cfg.loss.scale * scale_loss(self.gaussians.scales / self.radius)
+        with stage("depth"):
+            depth, valid = geometry_depth(gb, phase.planar_depth)
+            if view.mask is not None:
+                valid = valid & (view.mask > 0.5)
         if phase.one_sided:
-            record_visibility(self.gaussians, view.camera, depth.detach(), valid)
+            with stage("one_sided"):
+                record_visibility(self.gaussians, view.camera, depth.detach(), valid)
         # The silhouette term picks its own facing points; L_single and L_multi trust
         # the depth only where the surface faces the view (DEPTH_FACING_DEG).
         sil_valid = valid
         if cfg.ablation.facing_depth:
             valid = valid & facing_view(gb.normal, view.camera)
         if phase.single_view and cfg.loss.single_view > 0:
-            weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
-            terms["single_view"] = cfg.loss.single_view * single_view_loss(
-                gb.normal, depth, valid, view.camera, weight,
-                same_surface=cfg.ablation.same_surface_normals,
-            )  # fmt: skip
+            with stage("single_view_loss"):
+                weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
+                terms["single_view"] = cfg.loss.single_view * single_view_loss(
+                    gb.normal, depth, valid, view.camera, weight,
+                    same_surface=cfg.ablation.same_surface_normals,
+                )  # fmt: skip
         if phase.silhouette and self.silhouette is not None:
-            terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
-                vi, view.camera, depth, sil_valid
-            )
+            with stage("silhouette_loss"):
+                terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
+                    vi, view.camera, depth, sil_valid
+                )
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
             nview = self._targets[nb]
-            gb_n, _ = render_gbuffer(
-                self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
-                antialiased=phase.antialiased, lowpass=phase.lowpass,
-                opacity_scale=view_opacity_scale(
-                    self.gaussians, nview.camera, one_sided=phase.one_sided, grazing=phase.grazing
-                ),
-            )  # fmt: skip
-            d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
-            if cfg.ablation.facing_depth:
-                v_n = v_n & facing_view(gb_n.normal, nview.camera)
-            if nview.mask is not None:
-                v_n = v_n & (nview.mask > 0.5)
-            mv, _ = multi_view_loss(
-                depth, valid, view.camera, d_n, v_n, nview.camera,
-                max_error_px=cfg.loss.multiview_max_error_px,
-                n_pixels=cfg.loss.multiview_pixels, generator=self.gen,
-                error_weighting=cfg.loss.multiview_error_weighting,
-            )  # fmt: skip
+            with stage("neighbour"):
+                with stage("view_opacity"):
+                    cull_n = view_opacity_scale(
+                        self.gaussians,
+                        nview.camera,
+                        one_sided=phase.one_sided,
+                        grazing=phase.grazing,
+                    )
+                with stage("gbuffer"):
+                    gb_n, _ = render_gbuffer(
+                        self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
+                        antialiased=phase.antialiased, lowpass=phase.lowpass,
+                        opacity_scale=cull_n,
+                    )  # fmt: skip
+                with stage("depth"):
+                    d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
+                    if cfg.ablation.facing_depth:
+                        v_n = v_n & facing_view(gb_n.normal, nview.camera)
+                    if nview.mask is not None:
+                        v_n = v_n & (nview.mask > 0.5)
+            with stage("multi_view_loss"):
+                mv, _ = multi_view_loss(
+                    depth, valid, view.camera, d_n, v_n, nview.camera,
+                    max_error_px=cfg.loss.multiview_max_error_px,
+                    n_pixels=cfg.loss.multiview_pixels, generator=self.gen,
+                    error_weighting=cfg.loss.multiview_error_weighting,
+                )  # fmt: skip
             terms["multi_view"] = cfg.loss.multi_view * mv
         loss = sum(terms.values())
         for o in self.optimizers.values():
             o.zero_grad(set_to_none=True)
         values = [t.detach().float() for t in (*terms.values(), loss)]
-        loss.backward()  # a non-finite loss gives non-finite gradients: caught below
-        # One host read-back per step for the loss values and the NaN guard together:
-        # on a GPU each read is a sync, and one per parameter stalled the queue 8 times.
-        host = torch.stack(values + self._gradient_ratios()).tolist()
+        with stage("backward"):
+            loss.backward()  # a non-finite loss gives non-finite gradients: caught below
+        with stage("nan_guard"):
+            # One host read-back per step for the loss values and the NaN guard together:
+            # on a GPU each read is a sync, and one per parameter stalled the queue 8 times.
+            host = torch.stack(values + self._gradient_ratios()).tolist()
         losses, ratios = host[: len(values)], host[len(values) :]
         ok = math.isfinite(losses[-1]) and all(r < 1.0 for r in ratios)
         if not ok:
@@ -466,13 +488,15 @@ class Trainer:
             return {"skipped": 1.0}
         if not phase.envmap and "envmap" in self.optimizers:
             self.optimizers["envmap"].zero_grad(set_to_none=True)
-        for k, o in self.optimizers.items():
-            if k == "envmap" and not phase.envmap:
-                continue
-            o.step()
-        stats = self.strategy.step_post_backward(
-            self.gaussians, self.optimizers, res, it, view.camera.width, view.camera.height
-        )
+        with stage("optimizer"):
+            for k, o in self.optimizers.items():
+                if k == "envmap" and not phase.envmap:
+                    continue
+                o.step()
+        with stage("densify"):
+            stats = self.strategy.step_post_backward(
+                self.gaussians, self.optimizers, res, it, view.camera.width, view.camera.height
+            )
         self.iteration += 1
         out = dict(zip(terms, losses[:-1], strict=True))
         out["total"] = losses[-1]

@@ -23,6 +23,7 @@ from core.render.raster.projection import (
 )
 from core.render.raster.reference import rasterize_reference
 from core.scene.cameras import Camera
+from core.stages import stage
 
 __all__ = [
     "BACKENDS",
@@ -189,20 +190,23 @@ def rasterize(
         )
     W, H = camera.width, camera.height
     projector = PROJECTORS.get(name)
-    if projector is not None and (covariances is None or not covariances.requires_grad):
-        proj = projector(
-            means, quats, scales, camera, covariances=covariances, near=near, far=far,
-            eps2d=eps2d,
-        )  # fmt: skip
-    else:
-        if covariances is None:
-            covariances = covariances_from(quats, scales)
-        proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
-    bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
+    with stage("project"):
+        if projector is not None and (covariances is None or not covariances.requires_grad):
+            proj = projector(
+                means, quats, scales, camera, covariances=covariances, near=near, far=far,
+                eps2d=eps2d,
+            )  # fmt: skip
+        else:
+            if covariances is None:
+                covariances = covariances_from(quats, scales)
+            proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
+    with stage("bin"):
+        bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
     fn = BACKENDS[name][1]
     if antialiased and proj.compensation is not None:
         opacities = opacities * proj.compensation
-    feats, alpha = fn(proj, opacities, features, bins, W, H)
+    with stage("composite"):
+        feats, alpha = fn(proj, opacities, features, bins, W, H)
     return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
 
 
