@@ -54,7 +54,7 @@ from core.training.losses import (
     scale_loss,
     single_view_loss,
 )
-from core.training.optim import make_optimizers, means_lr, set_lr
+from core.training.optim import adam, load_adam_state, make_optimizers, means_lr, set_lr
 from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
 from core.training.silhouette import SilhouetteDepth, silhouette_points
 
@@ -259,7 +259,7 @@ class Trainer:
             make_optimizers(self.gaussians, self.cfg, self.radius)
         )
         if self.envmap is not None:
-            opts["envmap"] = torch.optim.Adam(self.envmap.parameters(), lr=self.cfg.lr.envmap)
+            opts["envmap"] = adam(list(self.envmap.parameters()), lr=self.cfg.lr.envmap)
         return opts
 
     @property
@@ -325,7 +325,7 @@ class Trainer:
         self._prepare_silhouette()
         for k, o in self.optimizers.items():
             if k in x["optimizers"]:
-                o.load_state_dict(x["optimizers"][k])
+                load_adam_state(o, x["optimizers"][k])
         self.strategy.load_state_dict(x["densify"])
         self.iteration = int(x["iteration"])
         self.train_seconds = float(x["train_seconds"])
