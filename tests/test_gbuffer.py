@@ -127,3 +127,33 @@ def test_gbuffer_gradients_match_finite_differences():
 
     inputs = [t.clone().requires_grad_(True) for t in (means, quats, op, colors, w_r)]
     assert torch.autograd.gradcheck(f, inputs, eps=1e-6, atol=1e-5, rtol=1e-4)
+
+
+def test_two_views_sharing_one_normals_tensor_match_computing_them_per_view():
+    """The trainer computes Eq. 6 normals once per step for both views and their opacity
+    factors; the images and the gradients are those of computing them per render."""
+    from bench.common import bench_camera
+    from bench.train_step import make_gaussians, neighbour_camera
+    from core.render.gbuffer import render_gbuffer
+
+    cam = bench_camera(24)
+    cams = (cam, neighbour_camera(cam, 25.0))
+
+    def loss_and_grads(shared: bool):
+        gs = make_gaussians(400, torch.device("cpu"), seed=3)
+        normals = gs.normals() if shared else None
+        total = 0.0
+        for c in cams:
+            gb, _ = render_gbuffer(gs, c, sh_degree=1, backend="cpu", normals=normals)
+            total = total + (gb.normal * gb.base).sum() + gb.plane_dist.square().sum()
+        total.backward()
+        return total.detach(), {
+            k: p.grad.clone() for k, p in gs.params.items() if p.grad is not None
+        }
+
+    once, grads_once = loss_and_grads(shared=True)
+    per_view, grads_per_view = loss_and_grads(shared=False)
+    torch.testing.assert_close(once, per_view, rtol=0, atol=0)  # same forward, bit for bit
+    assert grads_once.keys() == grads_per_view.keys() and "quats" in grads_once
+    for k in grads_once:
+        torch.testing.assert_close(grads_once[k], grads_per_view[k], rtol=1e-5, atol=1e-7)

@@ -234,14 +234,20 @@ def render_gbuffer(
     sh_degree: int,
     backend: str = "auto",
     opacity_scale: Tensor | None = None,
+    normals: Tensor | None = None,
     **kw,
 ) -> tuple[GBuffer, RasterResult]:
-    """G-buffer of a Gaussian model for one view (SH evaluated toward this camera)."""
+    """G-buffer of a Gaussian model for one view (SH evaluated toward this camera).
+
+    ``normals``: the model's Eq. 6 normals when the caller already has them (a training
+    step renders two views and the opacity factors read them too: computed once, their
+    backward runs once)."""
     op = gaussians.opacities if opacity_scale is None else gaussians.opacities * opacity_scale
     with stage("sh_colors"):
         colors = gaussians.colors(camera, sh_degree)
-    with stage("normals"):
-        normals = gaussians.normals()
+    if normals is None:
+        with stage("normals"):
+            normals = gaussians.normals()
     return render_gbuffer_tensors(
         gaussians.params["means"],
         gaussians.unit_quats,

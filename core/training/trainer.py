@@ -116,6 +116,7 @@ def forward_view(
     *,
     absgrad: bool = False,
     opacity_scale: Tensor | None = None,
+    normals: Tensor | None = None,
 ) -> tuple[GBuffer, ShadeResult, Any]:
     """The training forward pass of one view: G-buffer + deferred shading for ``phase``
     (with gradients; readers of a trained model use ``TrainedModel.render``)."""
@@ -123,6 +124,7 @@ def forward_view(
         gb, res = render_gbuffer(
             gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
             antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
+            normals=normals,
         )  # fmt: skip
     with stage("deferred_shading"):
         shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
@@ -396,13 +398,16 @@ class Trainer:
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
+        with stage("normals"):  # once per step: both views and their opacity factors
+            normals = self.gaussians.normals()
         with stage("view_opacity"):
             cull = view_opacity_scale(
-                self.gaussians, view.camera, one_sided=phase.one_sided, grazing=phase.grazing
-            )
+                self.gaussians, view.camera, one_sided=phase.one_sided, grazing=phase.grazing,
+                normals=normals,
+            )  # fmt: skip
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
-            absgrad=cfg.densify.absgrad, opacity_scale=cull,
+            absgrad=cfg.densify.absgrad, opacity_scale=cull, normals=normals,
         )  # fmt: skip
         self.strategy.step_pre_backward(res)
         with stage("rgb_loss"):
@@ -446,12 +451,13 @@ class Trainer:
                         nview.camera,
                         one_sided=phase.one_sided,
                         grazing=phase.grazing,
+                        normals=normals,
                     )
                 with stage("gbuffer"):
                     gb_n, _ = render_gbuffer(
                         self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
                         antialiased=phase.antialiased, lowpass=phase.lowpass,
-                        opacity_scale=cull_n,
+                        opacity_scale=cull_n, normals=normals,
                     )  # fmt: skip
                 with stage("depth"):
                     d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
