@@ -48,6 +48,9 @@ KIT_TESTS = (
     "tests/test_envmap.py",
     "tests/test_cuda_paths_twin.py",
 )
+# the repository's own HTTP client (client/glint_client, on the kit's PYTHONPATH): its
+# dependencies (httpx, tqdm) are the service's too
+CLIENT_MODULE = "glint_client"
 # needed at run time but never imported by name in the scanned code
 INDIRECT = ("fast-simplification", "httptools", "watchfiles")  # trimesh.simplify, uvicorn
 # imported where present, with a stated fallback where not (LPIPS: "unavailable"; SfM:
@@ -105,7 +108,7 @@ def imported_modules(files: list[Path]) -> dict[str, str]:
 
 def third_party(modules: dict[str, str]) -> tuple[dict[str, str], list[str]]:
     """(distribution -> module that needs it, modules with no distribution)."""
-    own = set(SCANNED) | {"tests"}
+    own = set(SCANNED) | {"tests", CLIENT_MODULE}
     mapping = md.packages_distributions()
     dists: dict[str, str] = {}
     unknown = []
