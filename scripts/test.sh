@@ -14,4 +14,6 @@ echo "== ruff"
 ruff check .
 ruff format --check .
 echo "== pytest"
-python -m pytest -q -p no:cacheprovider "$@"
+# two workers (the machine's cores), each test file on one worker so a file's fixtures
+# (servers, trained runs) are built once; GLINT_TEST_WORKERS=0 runs everything in-process
+python -m pytest -q -p no:cacheprovider -n "${GLINT_TEST_WORKERS:-2}" --dist loadfile "$@"
