@@ -18,6 +18,7 @@ import hashlib
 from datetime import UTC, datetime
 
 from sqlalchemy import select
+from sqlalchemy.orm import Session
 
 from api.auth import Principal
 from api.problems import ApiError, FieldError
@@ -26,7 +27,7 @@ from api.schemas import SceneFileOut, UploadOut
 from api.service.chunk_uploads import uploads_key
 from api.service.db import Database
 from api.service.discard import discard
-from api.service.models import Upload
+from api.service.models import Scene, Upload
 from api.service.settings import Settings
 from api.service.store import ArtifactStore
 from api.uploads import Staged, StagedSet
@@ -78,18 +79,27 @@ def offset_mismatch(upload_id: str, sent: int, current: int) -> ApiError:
     )
 
 
+def owned_upload(
+    session: Session, principal: Principal, scene_id: str, upload_id: str, *, lock: bool = False
+) -> tuple[Scene, Upload]:
+    """The caller's scene and its unfinished upload, or 404 (also for other owners')."""
+    scene = owned_scene(session, principal, scene_id, lock=lock)
+    query = select(Upload).where(Upload.id == upload_id, Upload.scene_id == scene_id)
+    up = session.scalar(query.with_for_update() if lock else query)
+    if up is None:
+        raise ApiError(
+            404,
+            "not-found",
+            f"upload '{upload_id}' not found in scene '{scene_id}' (finished uploads are "
+            "files: GET /v1/scenes/{id}/files)",
+        )
+    return scene, up
+
+
 def read_upload(database: Database, principal: Principal, scene_id: str, upload_id: str) -> Upload:
     """The caller's unfinished upload on an open scene (404 / 409 otherwise), detached."""
     with database.read() as s:
-        scene = owned_scene(s, principal, scene_id)
-        up = s.scalar(select(Upload).where(Upload.id == upload_id, Upload.scene_id == scene_id))
-        if up is None:
-            raise ApiError(
-                404,
-                "not-found",
-                f"upload '{upload_id}' not found in scene '{scene_id}' (finished uploads are "
-                "files: GET /v1/scenes/{id}/files)",
-            )
+        scene, up = owned_upload(s, principal, scene_id, upload_id)
         require_open(scene)
         s.expunge(up)
     return up
@@ -110,15 +120,8 @@ def advance(
     moved the offset first, and 404/409 when the upload or the scene's openness is gone.
     """
     with database.write() as s:
-        scene = owned_scene(s, principal, scene_id, lock=True)
+        scene, up = owned_upload(s, principal, scene_id, upload_id, lock=True)
         require_open(scene)
-        up = s.scalar(
-            select(Upload)
-            .where(Upload.id == upload_id, Upload.scene_id == scene_id)
-            .with_for_update()
-        )
-        if up is None:
-            raise ApiError(404, "not-found", f"upload '{upload_id}' not found")
         if up.offset != expected:
             raise offset_mismatch(upload_id, expected, up.offset)
         up.chunks = [*up.chunks, [expected, key]]

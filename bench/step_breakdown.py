@@ -32,6 +32,7 @@ import shutil
 import statistics
 import tempfile
 import time
+from bisect import bisect_right
 from collections import defaultdict
 from pathlib import Path
 from typing import Any
@@ -87,13 +88,16 @@ def breakdown(events: list[Any], steps: int) -> list[dict[str, Any]]:
             path_of[id(e)] = "/".join(names)
             stack.append(e)
 
+    nested: dict[int, float] = defaultdict(float)  # id(range) -> time of the ranges in it
+    for e in ranges:
+        parent = parents.get(id(e))
+        if parent is not None:
+            nested[id(parent)] += _range(e)[1] - _range(e)[0]
     forward: dict[str, float] = defaultdict(float)
     for e in ranges:
-        if e.name == STEP:
-            continue
-        start, end = _range(e)
-        nested = sum(_range(c)[1] - _range(c)[0] for c in ranges if parents.get(id(c)) is e)
-        forward[path_of[id(e)]] += end - start - nested
+        if e.name != STEP:
+            start, end = _range(e)
+            forward[path_of[id(e)]] += end - start - nested[id(e)]
     step_total = sum(_range(e)[1] - _range(e)[0] for e in ranges if e.name == STEP)
     top = sum(
         _range(e)[1] - _range(e)[0]
@@ -103,16 +107,20 @@ def breakdown(events: list[Any], steps: int) -> list[dict[str, Any]]:
     forward["(outside stages)"] += step_total - top
 
     # the stage each forward operation ran in, by the sequence number of its node
+    spans = {
+        t: [(*_range(r), path_of[id(r)]) for r in evs if r.name != STEP]
+        for t, evs in by_thread.items()
+    }  # sorted by start, outer before inner
+    starts = {t: [a for a, _, _ in sp] for t, sp in spans.items()}
+
     def innermost(evt: Any) -> str | None:
-        best, best_len = None, float("inf")
-        s = _range(evt)[0]
-        for r in by_thread.get(evt.thread, ()):
-            if r.name == STEP:
-                continue
-            a, b = _range(r)
-            if a <= s <= b and b - a < best_len:
-                best, best_len = path_of[id(r)], b - a
-        return best
+        # ranges nest: walking back from the last one started, the first that still
+        # holds the moment is the innermost
+        s, sp = _range(evt)[0], spans.get(evt.thread, [])
+        for i in range(bisect_right(starts.get(evt.thread, []), s) - 1, -1, -1):
+            if sp[i][1] >= s:
+                return sp[i][2]
+        return None
 
     seq_stage: dict[int, tuple[float, str | None]] = {}
     for e in events:

@@ -19,8 +19,16 @@ from sqlalchemy import select
 from api.deps import DatabaseDep, JsonBody, PrincipalDep, SessionDep, SettingsDep, StoreDep
 from api.pages import Limit, Offset, page_rows
 from api.paths import UnsafePathError, clean_relpath
-from api.problems import ApiError, FieldError, not_found, responses
-from api.resumable import advance, complete_out, finish, offset_mismatch, read_upload, upload_out
+from api.problems import ApiError, FieldError, responses
+from api.resumable import (
+    advance,
+    complete_out,
+    finish,
+    offset_mismatch,
+    owned_upload,
+    read_upload,
+    upload_out,
+)
 from api.routers.scenes import owned_scene, require_open
 from api.schemas import Page, SceneFileOut, UploadCreate, UploadOut
 from api.service.chunk_uploads import chunk_key, uploads_key
@@ -120,7 +128,6 @@ def create_upload(
     up = Upload(
         id=new_id("upl"),
         scene_id=scene_id,
-        owner=principal.owner,
         path=path,
         size=body.size,
         sha256=sha,
@@ -171,10 +178,7 @@ def get_upload(
     settings: SettingsDep,
     response: Response,
 ) -> UploadOut:
-    owned_scene(session, principal, scene_id)
-    up = session.scalar(select(Upload).where(Upload.id == upload_id, Upload.scene_id == scene_id))
-    if up is None:
-        raise not_found("upload", upload_id)
+    _, up = owned_upload(session, principal, scene_id, upload_id)
     response.headers["Upload-Offset"] = str(up.offset)
     return upload_out(up, settings)
 
@@ -266,10 +270,7 @@ def delete_upload(
     session: SessionDep,
     store: StoreDep,
 ) -> Response:
-    owned_scene(session, principal, scene_id, lock=True)
-    up = session.scalar(select(Upload).where(Upload.id == upload_id, Upload.scene_id == scene_id))
-    if up is None:
-        raise not_found("upload", upload_id)
+    _, up = owned_upload(session, principal, scene_id, upload_id, lock=True)
     session.delete(up)
     session.commit()
     discard(store, [uploads_key(scene_id, upload_id)])

@@ -9,7 +9,7 @@ from __future__ import annotations
 import uuid
 from datetime import UTC, datetime, timedelta
 
-from sqlalchemy import select
+from sqlalchemy import delete, select
 
 from api.service.db import Database
 from api.service.discard import discard
@@ -31,8 +31,7 @@ def chunk_key(scene_id: str, upload_id: str, offset: int) -> str:
 def drop_scene_uploads(database: Database, store: ArtifactStore, scene_id: str) -> None:
     """Remove a scene's unfinished uploads (it was committed: its files are frozen)."""
     with database.write() as s:
-        for row in s.scalars(select(Upload).where(Upload.scene_id == scene_id)):
-            s.delete(row)
+        s.execute(delete(Upload).where(Upload.scene_id == scene_id))
     discard(store, [uploads_key(scene_id)])
 
 

@@ -283,7 +283,6 @@ class Upload(Base):
 
     id: Mapped[str] = mapped_column(String(40), primary_key=True)
     scene_id: Mapped[str] = mapped_column(ForeignKey("scenes.id", ondelete="CASCADE"), index=True)
-    owner: Mapped[str] = mapped_column(String(100), index=True)
     path: Mapped[str] = mapped_column(String(1024))
     size: Mapped[int] = mapped_column(BigInteger)
     sha256: Mapped[str] = mapped_column(String(64))

@@ -26,14 +26,15 @@ from api.service.chunk_uploads import expire_uploads
 from api.service.db import Database
 from api.service.idempotency import forget_expired
 from api.service.models import Job, Scene
+from api.service.settings import Settings
 from api.service.store import ArtifactStore, StoreUnavailableError, job_key, scene_key
 
 log = logging.getLogger("glint.sweeper")
 
 ORPHAN_GRACE_S = 900.0
 ABANDONED_AFTER_S = 24 * 3600.0
-UPLOAD_IDLE_S = 7 * 24 * 3600.0  # the defaults of Settings.upload_expire_s and
-IDEMPOTENCY_TTL_S = 24 * 3600.0  # Settings.idempotency_ttl_s
+UPLOAD_IDLE_S: float = Settings.model_fields["upload_expire_s"].default
+IDEMPOTENCY_TTL_S: float = Settings.model_fields["idempotency_ttl_s"].default
 _ID_BATCH = 500
 
 

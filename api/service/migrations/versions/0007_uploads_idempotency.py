@@ -26,7 +26,6 @@ def upgrade() -> None:
             sa.ForeignKey("scenes.id", ondelete="CASCADE"),
             nullable=False,
         ),
-        sa.Column("owner", sa.String(100), nullable=False),
         sa.Column("path", sa.String(1024), nullable=False),
         sa.Column("size", sa.BigInteger(), nullable=False),
         sa.Column("sha256", sa.String(64), nullable=False),
@@ -36,7 +35,6 @@ def upgrade() -> None:
         sa.Column("updated_at", sa.DateTime(timezone=True), nullable=False),
     )
     op.create_index("ix_uploads_scene_id", "uploads", ["scene_id"])
-    op.create_index("ix_uploads_owner", "uploads", ["owner"])
     op.create_index("ix_uploads_scene_path", "uploads", ["scene_id", "path"])
     op.create_table(
         "idempotency_keys",
