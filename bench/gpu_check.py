@@ -137,9 +137,12 @@ def stage_env(kit: Kit) -> dict[str, Any]:
 
 
 def stage_wheels(kit: Kit) -> dict[str, Any]:
-    from bench.gpu_wheels import check_lock
+    from bench.gpu_wheels import check_carried, check_lock
 
-    res = check_lock()
+    if kit.dry or kit.wheels is None:  # the imports are mapped through this environment
+        res = check_lock()
+    else:  # a bare machine: its distributions arrive with the wheels, checked by hash
+        res = {"problems": check_carried(kit.wheels), "warnings": []}
     if res["problems"]:
         raise RuntimeError("; ".join(res["problems"]))
     if res["warnings"]:
@@ -163,8 +166,31 @@ def stage_wheels(kit: Kit) -> dict[str, Any]:
     cmd = [sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps",
            "--no-compile", "--upgrade", "--target", str(site), *map(str, wheels)]  # fmt: skip
     kit.run(cmd, 300, "wheels.log")
+    _register_commands(site)
     res.update(installed=True, site=str(site))
     return res
+
+
+def _register_commands(site: Path) -> None:
+    """Make ``glint worker`` / ``glint serve`` resolvable from the uninstalled checkout.
+
+    The service layers add their commands through the ``glint.commands`` entry points,
+    which importlib only finds in an installed distribution's metadata; the kit runs the
+    repository from its folder, so it writes that metadata (from pyproject.toml) into
+    the site folder already on PYTHONPATH.
+    """
+    import tomllib
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    eps = project.get("entry-points", {})
+    info = site / f"glint-{project['version']}.dist-info"
+    info.mkdir(parents=True, exist_ok=True)
+    (info / "METADATA").write_text(
+        f"Metadata-Version: 2.1\nName: glint\nVersion: {project['version']}\n"
+    )
+    lines = [f"[{group}]\n" + "".join(f"{k} = {v}\n" for k, v in items.items())
+             for group, items in eps.items()]  # fmt: skip
+    (info / "entry_points.txt").write_text("\n".join(lines))
 
 
 def stage_build(kit: Kit) -> dict[str, Any]:

@@ -246,6 +246,23 @@ def fetch(dest: Path) -> list[Path]:
     return out
 
 
+def check_carried(folder: Path) -> list[str]:
+    """The GPU machine's check: every locked wheel is in ``folder``, byte for byte.
+
+    ``check_lock`` maps the kit's imports to the distributions installed *here*, which a
+    bare GPU machine does not have until the carried wheels are installed; there the lock
+    itself is the truth, so only the carried files are checked against it.
+    """
+    problems = []
+    for e in json.loads(LOCK.read_text())["wheels"]:
+        p = folder / e["file"]
+        if not p.is_file():
+            problems.append(f"{p}: missing (make the folder with scripts/gpu_wheels.sh)")
+        elif _sha256(p) != e["sha256"]:
+            problems.append(f"{p}: not the locked wheel (sha256 differs)")
+    return problems
+
+
 def check_lock() -> dict:
     """The dry run's check, without network or GPU.
 

@@ -56,6 +56,40 @@ def _wait(pred, timeout: float, what: str):  # type: ignore[no-untyped-def]
     raise RuntimeError(f"timed out waiting for {what}")
 
 
+def _start_redis(redis_bin: str, port: int, log: Path) -> subprocess.Popen:
+    """redis-server on ``port``, answering PING, or an error that quotes its own output.
+
+    A binary carried from another system may miss shared libraries there: a folder
+    ``redis-libs`` beside it (scripts/gpu_wheels.sh fills it) goes on its library path.
+    """
+    env = dict(os.environ)
+    libs = Path(redis_bin).parent / "redis-libs"
+    if libs.is_dir():
+        env["LD_LIBRARY_PATH"] = os.pathsep.join(
+            filter(None, [str(libs), env.get("LD_LIBRARY_PATH")])
+        )
+    fh = open(log, "w")  # noqa: SIM115  (the child holds it; closed with the process)
+    proc = subprocess.Popen(
+        [redis_bin, "--port", str(port), "--bind", "127.0.0.1", "--save", "",
+         "--appendonly", "no"],
+        stdout=fh, stderr=subprocess.STDOUT, env=env,
+    )  # fmt: skip
+    fh.close()
+
+    def answers() -> bool:
+        if proc.poll() is not None:
+            raise RuntimeError(f"redis-server exited {proc.returncode}: {log.read_text()[-800:]}")
+        try:
+            with socket.create_connection(("127.0.0.1", port), timeout=1) as s:
+                s.sendall(b"PING\r\n")
+                return s.recv(16).startswith(b"+PONG")
+        except OSError:
+            return False
+
+    _wait(answers, 20, f"redis-server on port {port} (see {log})")
+    return proc
+
+
 def trip(redis_bin: str, device: str, root: Path) -> dict:
     from api.auth import create_key
     from api.main import create_app
@@ -65,11 +99,7 @@ def trip(redis_bin: str, device: str, root: Path) -> dict:
     shutil.rmtree(root, ignore_errors=True)
     root.mkdir(parents=True)
     rport = _port()
-    redis = subprocess.Popen(
-        [redis_bin, "--port", str(rport), "--bind", "127.0.0.1", "--save", "",
-         "--appendonly", "no"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
+    redis = _start_redis(redis_bin, rport, root / "redis.log")
     redis_url = f"redis://127.0.0.1:{rport}/0"
     env_vals = {
         "GLINT_DATA_DIR": str(root / "data"),

