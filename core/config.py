@@ -121,6 +121,7 @@ class LearningRates(_Strict):
     scales: float = Field(5e-3, gt=0, le=MAX_LEARNING_RATE)
     quats: float = Field(1e-3, gt=0, le=MAX_LEARNING_RATE)
     refl: float = Field(0.01, gt=0, le=MAX_LEARNING_RATE)
+    roughness: float = Field(0.01, gt=0, le=MAX_LEARNING_RATE, description="as w_r's logits")
     envmap: float = Field(0.01, gt=0, le=MAX_LEARNING_RATE)
 
 
@@ -186,6 +187,12 @@ class Ablation(_Strict):
         description="False: L_single and L_multi use every covered pixel (the paper's); "
         "True: only pixels whose surface faces the view within 60° (Eq. 8's depth is "
         "ill-conditioned edge-on; core/render/depth_geometry.py)",
+    )
+    roughness: bool = Field(
+        True,
+        description="False: every splat reflects one direction (the paper's Eq. 9, a mirror "
+        "lookup); True: each splat learns a roughness and reads the env map's mip chain at "
+        "the level it gives (core/render/roughness.py, core/render/envmap_mips.py)",
     )
 
 
@@ -262,6 +269,9 @@ class TrainConfig(_Strict):
     )
     init_opacity: float = Field(0.1, gt=0, lt=1)
     init_refl: float = Field(0.05, ge=0, lt=1)
+    init_roughness: float = Field(
+        0.15, gt=0, lt=1, description="initial per-splat roughness ρ (GGX α = ρ²)"
+    )
     phases: Phases = Phases()
     loss: LossWeights = LossWeights()
     lr: LearningRates = LearningRates()

@@ -4,4 +4,4 @@ Kept free of heavy imports so the API and viewer protocol can name channels with
 loading torch.
 """
 
-CHANNELS = ("final", "base", "specular", "normal", "depth", "w_r", "alpha")
+CHANNELS = ("final", "base", "specular", "normal", "depth", "w_r", "roughness", "alpha")

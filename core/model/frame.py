@@ -1,7 +1,7 @@
 """One rendered view of a trained model, and its channels as images.
 
 The same mapping from G-buffer and shading to the user-facing channels (``final``,
-``base``, ``specular``, ``normal``, ``depth``, ``w_r``, ``alpha``) serves the
+``base``, ``specular``, ``normal``, ``depth``, ``w_r``, ``roughness``, ``alpha``) serves the
 renders an export writes and the frames the viewer streams.
 """
 
@@ -21,6 +21,8 @@ from core.scene.imageio import linear_to_srgb, srgb_to_linear
 
 # channels that need deferred shading (env map lookups); the others read the G-buffer
 SHADED = frozenset({"final", "specular"})
+# channels that read the splats' roughness (when the model has one)
+ROUGH = frozenset({"final", "specular", "roughness"})
 # channels that need per-Gaussian colours (SH toward the camera)
 COLOURED = frozenset({"final", "specular", "base"})
 
@@ -83,6 +85,9 @@ class Frame:
             return colormap(depth.cpu(), valid.cpu())
         if channel == "w_r":
             return gb.w_r[..., None].expand(-1, -1, 3)
+        if channel == "roughness":  # like w_r: blended, i.e. ρ × coverage; 0 = mirror
+            rough = gb.alpha.new_zeros(gb.alpha.shape) if gb.roughness is None else gb.roughness
+            return rough[..., None].expand(-1, -1, 3)
         if channel == "alpha":
             return gb.alpha[..., None].expand(-1, -1, 3)
         raise ValueError(f"unknown channel {channel!r}; expected one of {', '.join(CHANNELS)}")

@@ -16,7 +16,7 @@ from typing import Any
 from core.config import TrainConfig
 
 # Parts a user may override with ``plan_overrides``; every decision of a plan.
-OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette")
+OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness")
 DECISION_KEYS = (
     "envmap",
     "envmap_resolution",
@@ -25,6 +25,7 @@ DECISION_KEYS = (
     "background",
     "mesh",
     "silhouette",
+    "roughness",
 )
 # The paper's cube-map face size (6 × 128 × 128).
 PAPER_ENVMAP_RESOLUTION = 128
@@ -59,6 +60,9 @@ class ScenePlan:
     silhouette: Decision = field(
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
+    roughness: Decision = field(
+        default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
+    )
 
     def neighbour_of(self, view_index: int) -> int | None:
         if not self.multi_view.value or view_index >= len(self.neighbours):
@@ -67,6 +71,9 @@ class ScenePlan:
 
     def envmap_possible(self, cfg: TrainConfig) -> bool:
         return cfg.ablation.deferred_shading and bool(self.envmap.value)
+
+    def roughness_possible(self, cfg: TrainConfig) -> bool:
+        return self.envmap_possible(cfg) and bool(self.roughness.value)
 
     # -- persistence --------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:

@@ -21,7 +21,7 @@ from torch import Tensor
 
 from core.config import TrainConfig, saved_config
 from core.model.checkpoint import CheckpointError, load_checkpoint
-from core.model.frame import COLOURED, SHADED, Frame
+from core.model.frame import COLOURED, ROUGH, SHADED, Frame
 from core.model.placement import reopen_placement
 from core.model.plan import ScenePlan
 from core.model.schedule import Phase, phase_at
@@ -29,6 +29,7 @@ from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer, render_gbuffer_tensors
 from core.render.raster import resolve_backend
+from core.render.roughness import roughness as splat_roughness
 from core.render.shading import deferred_shade
 from core.render.view_opacity import view_opacity_scale
 from core.scene.cameras import Camera, Intrinsics
@@ -199,6 +200,9 @@ class TrainedModel:
             "normals": g.normals().detach(),
             "w_r": g.w_r.detach(),
         }
+        rough = splat_roughness(g)
+        if rough is not None:
+            static["roughness"] = rough.detach()
         if self.phase.sh_degree == 0:
             dummy = Camera.look_at([0, 0, 1], [0, 0, 0], [0, 1, 0], Intrinsics(1, 1, 0, 0, 1, 1))
             static["colors"] = g.colors(dummy, 0).detach()
@@ -223,6 +227,7 @@ class TrainedModel:
         phase = self.phase
         bg = self.background if background is None else background
         sh_degree = phase.sh_degree if wanted & COLOURED else 0
+        with_rough = bool(wanted & ROUGH)
         if self._static is not None:
             st = self._static
             cull = view_opacity_scale(
@@ -237,6 +242,7 @@ class TrainedModel:
                 st["means"], None, None, opacities, colors, st["normals"], st["w_r"],
                 camera, covariances=st["covariances"], backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass,
+                roughness=st.get("roughness") if with_rough else None,
             )  # fmt: skip
         else:
             cull = view_opacity_scale(
@@ -245,6 +251,7 @@ class TrainedModel:
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,
+                with_roughness=with_rough,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

@@ -192,13 +192,20 @@ class _PaddedBilinear(torch.autograd.Function):
     (N, 4, C) buffers; this keeps the backward to one index_add into the texels and two
     dot products for the coordinates (a quarter less time for forward + backward on
     CPU). ``x``, ``y`` are padded texel coordinates in [0.5, R + 0.5]; ``base`` is the
-    first flat index of each face. First derivatives only (nothing here needs more).
+    first flat index of each face; ``p`` the padded face size R + 2, one for all or
+    one per lookup (``core.render.envmap_mips`` packs every mip level in one buffer).
+    First derivatives only (nothing here needs more).
     """
 
     @staticmethod
-    def forward(ctx, padded: Tensor, x: Tensor, y: Tensor, base: Tensor, p: int) -> Tensor:
-        x0 = x.floor().clamp(0, p - 2)
-        y0 = y.floor().clamp(0, p - 2)
+    def forward(ctx, padded: Tensor, x: Tensor, y: Tensor, base: Tensor, p: int | Tensor) -> Tensor:
+        if isinstance(p, Tensor):  # a padded size per lookup (mip levels of one chain)
+            top = (p - 2).to(x.dtype)
+            x0 = torch.minimum(x.floor().clamp_min(0), top)
+            y0 = torch.minimum(y.floor().clamp_min(0), top)
+        else:
+            x0 = x.floor().clamp(0, p - 2)
+            y0 = y.floor().clamp(0, p - 2)
         fx = (x - x0).unsqueeze(-1)
         fy = (y - y0).unsqueeze(-1)
         i00 = base + y0.long() * p + x0.long()

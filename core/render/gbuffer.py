@@ -12,6 +12,7 @@ from torch import Tensor
 
 from core.render.gbuffer_compiled import can_build_compiled, features_compiled
 from core.render.raster import RasterResult, rasterize
+from core.render.roughness import roughness as splat_roughness
 from core.scene.cameras import Camera
 from core.stages import stage
 
@@ -43,6 +44,8 @@ class GBuffer:
     - ``camera``: the view these buffers belong to.
     - ``z_blend``: blended centre z Σ z_i α_i T_i (premultiplied), (H, W); None when
       the buffers were not splatted (then ``center_depth`` is unavailable).
+    - ``roughness``: blended (premultiplied) roughness ρ, (H, W); None when the model
+      has none (``core.render.roughness``): the env map is then read as a mirror.
 
     Derived on first use and then kept (a viewer frame of the final colour never pays
     for depth):
@@ -60,6 +63,7 @@ class GBuffer:
     alpha: Tensor
     camera: Camera
     z_blend: Tensor | None = None
+    roughness: Tensor | None = None
     min_alpha: float = MIN_ALPHA
     min_cos: float = MIN_COS
 
@@ -90,7 +94,7 @@ class GBuffer:
         return torch.where(covered, self.z_blend / torch.where(covered, self.alpha, 1.0), 0.0)
 
 
-_C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z = slice(0, 3), slice(3, 6), 6, 7, 8
+_C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z, _C_ROUGH = slice(0, 3), slice(3, 6), 6, 7, 8, 9
 
 
 def gbuffer_features(
@@ -100,16 +104,19 @@ def gbuffer_features(
     w_r: Tensor,
     camera: Camera,
     *,
+    roughness: Tensor | None = None,
     compiled: bool = True,
 ) -> Tensor:
-    """(N, 9) channels each Gaussian splats: base (3), facing camera normal (3), D, w_r, z.
+    """(N, 9) channels each Gaussian splats: base (3), facing camera normal (3), D, w_r, z;
+    (N, 10) with ``roughness`` (N,) as the last.
 
     Gradient-free CPU calls (viewer frames, evaluation renders) take the compiled
     kernel of ``core.render.gbuffer_compiled``; ``compiled=False`` keeps this PyTorch path, the
     reference it is tested against.
     """
     if compiled and can_build_compiled(means, colors, normals_world, w_r):
-        return features_compiled(means, colors, normals_world, w_r, camera)
+        feats = features_compiled(means, colors, normals_world, w_r, camera)
+        return feats if roughness is None else torch.cat([feats, roughness[:, None]], dim=-1)
     R = camera.R.to(means)
     mu_cam = means @ R.T + camera.t.to(means)
     n_cam = normals_world @ R.T
@@ -117,7 +124,8 @@ def gbuffer_features(
     sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
     n_cam = n_cam * sign
     D = (n_cam * mu_cam).sum(-1, keepdim=True)
-    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]], dim=-1)
+    extra = [] if roughness is None else [roughness[:, None]]
+    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3], *extra], dim=-1)
 
 
 def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
@@ -185,8 +193,10 @@ def render_gbuffer_tensors(
     absgrad: bool = False,
     antialiased: bool = False,
     lowpass: float = 0.3,
+    roughness: Tensor | None = None,
 ) -> tuple[GBuffer, RasterResult]:
-    """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z.
+    """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
+    roughness as a tenth when ``roughness`` (N,) is given.
 
     ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
     are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
@@ -195,7 +205,7 @@ def render_gbuffer_tensors(
     screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
     """
     with stage("features"):
-        feats = gbuffer_features(means, colors, normals_world, w_r, camera)
+        feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
     if near is None:
         near = near_plane(feats[:, _C_Z])
     res = rasterize(
@@ -221,6 +231,7 @@ def render_gbuffer_tensors(
         alpha=res.alpha,
         camera=camera,
         z_blend=f[..., _C_Z],
+        roughness=None if roughness is None else f[..., _C_ROUGH],
         min_alpha=min_alpha,
         min_cos=min_cos,
     )
@@ -235,13 +246,15 @@ def render_gbuffer(
     backend: str = "auto",
     opacity_scale: Tensor | None = None,
     normals: Tensor | None = None,
+    with_roughness: bool = True,
     **kw,
 ) -> tuple[GBuffer, RasterResult]:
     """G-buffer of a Gaussian model for one view (SH evaluated toward this camera).
 
     ``normals``: the model's Eq. 6 normals when the caller already has them (a training
     step renders two views and the opacity factors read them too: computed once, their
-    backward runs once)."""
+    backward runs once). ``with_roughness=False`` leaves the model's roughness out (a
+    frame or phase that does not read the env map splats no channel for it)."""
     op = gaussians.opacities if opacity_scale is None else gaussians.opacities * opacity_scale
     with stage("sh_colors"):
         colors = gaussians.colors(camera, sh_degree)
@@ -258,5 +271,6 @@ def render_gbuffer(
         gaussians.w_r,
         camera,
         backend=backend,
+        roughness=splat_roughness(gaussians) if with_roughness else None,
         **kw,
     )

@@ -12,6 +12,11 @@ The blended normal is premultiplied too, but only its direction is used (it is
 normalised), so coverage does not bend the reflection. Where alpha ≈ 0 the normal is
 ≈ 0: the safe normalisation maps it to the zero vector, the reflection of the view
 ray about a zero normal is the view ray itself, and everything stays finite.
+
+Roughness. When the G-buffer carries a blended roughness (``core.render.roughness``),
+E is read from the env map's mip chain at the level of detail that the pixel's ρ gives
+(``core.render.envmap_mips``); ρ is un-premultiplied by alpha first (it is a property
+of the surface, not of its coverage). Without it the lookup is the sharp one.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ import torch
 from torch import Tensor
 
 from core.render.envmap import EnvMap
+from core.render.envmap_mips import mip_sizes, roughness_to_lod, sample_cube_lod
 from core.render.gbuffer import GBuffer
 from core.render.shading_compiled import can_shade_compiled, shade_compiled
 from core.stages import stage
@@ -69,6 +75,19 @@ def world_normals(gbuffer: GBuffer) -> Tensor:
     return safe_normalize(n @ R)  # row-vector form of R^T n
 
 
+def pixel_roughness(blended: Tensor, alpha: Tensor) -> Tensor:
+    """ρ of the surface seen in each pixel: the blended (premultiplied) ρ over alpha;
+    0 where nothing covers the pixel (alpha below 1e-6), with a finite gradient."""
+    covered = alpha > 1e-6
+    return torch.where(covered, blended / torch.where(covered, alpha, 1.0), 0.0).clamp(0.0, 1.0)
+
+
+def pixel_lod(blended: Tensor, alpha: Tensor, resolution: int) -> Tensor:
+    """The env map's level of detail per pixel for a blended roughness (H, W)."""
+    levels = len(mip_sizes(resolution))
+    return roughness_to_lod(pixel_roughness(blended, alpha), resolution, levels)
+
+
 def deferred_shade(
     gbuffer: GBuffer,
     envmap: EnvMap | None,
@@ -101,12 +120,16 @@ def deferred_shade(
         raise ValueError("deferred shading is enabled but no environment map was given")
 
     tensors = (base, gbuffer.normal, w_r, alpha)
-    if compiled and can_shade_compiled(tensors, envmap):
+    if compiled and gbuffer.roughness is None and can_shade_compiled(tensors, envmap):
         final, specular, refl = shade_compiled(*tensors, bg, cam, envmap)
         return ShadeResult(final, base, specular, w_r, refl)
     _, view = cam.world_rays(dtype=base.dtype, device=base.device)
     refl = reflect(view, world_normals(gbuffer))
     with stage("envmap_lookup"):
-        radiance = envmap.sample(refl)
+        if gbuffer.roughness is None:
+            radiance = envmap.sample(refl)
+        else:
+            lod = pixel_lod(gbuffer.roughness, alpha, envmap.resolution)
+            radiance = sample_cube_lod(envmap.texels(), refl, lod)
     specular = w_r.unsqueeze(-1) * radiance
     return ShadeResult(base + specular + fill, base, specular, w_r, refl)

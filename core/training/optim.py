@@ -15,6 +15,7 @@ from torch import Tensor
 from core.config import TrainConfig
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.grazing import GRAZE_KEY
+from core.render.roughness import ROUGH_KEY
 
 
 def make_optimizers(
@@ -30,6 +31,7 @@ def make_optimizers(
         "sh_rest": lr.sh_rest,
         "refl_logits": lr.refl,
         GRAZE_KEY: lr.opacity,
+        ROUGH_KEY: lr.roughness,
     }
     return {
         k: adam([g.params[k]], lr=rates[k], eps=1e-15) for k in g.params if k not in UNTRAINED_KEYS

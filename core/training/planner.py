@@ -84,7 +84,29 @@ def decide_envmap(plan: ScenePlan, evidence: dict[str, Any], cfg: TrainConfig) -
             False, f"diffuse: mean excess {excess:.4f} < {MILD_EXCESS}, highlights "
             f"{highlights:.2%} < {SPECULAR_HIGHLIGHTS:.0%}", evidence)  # fmt: skip
         plan.sh_degree = Decision(0, "no view dependence: SH degree 0", evidence)
-    _apply_overrides(plan, cfg, only=("envmap", "sh_degree"))
+    decide_roughness(plan)
+    _apply_overrides(plan, cfg, only=("envmap", "sh_degree", "roughness"))
+
+
+def plan_roughness(cfg: TrainConfig) -> Decision:
+    """Before training: roughness goes with the env map, unless the ablation drops it."""
+    if not cfg.ablation.deferred_shading:
+        return Decision(False, "no deferred shading (ablation): nothing reflects")
+    if not cfg.ablation.roughness:
+        return Decision(False, "switched off by the ablation config (mirror lookups, Eq. 9)")
+    return Decision(True, "to be decided with the env map", pending=True)
+
+
+def decide_roughness(plan: ScenePlan) -> None:
+    """With the env map decided: roughness where there are reflections to blur."""
+    if not plan.roughness.pending:
+        return
+    if plan.envmap.value:
+        plan.roughness = Decision(
+            True, "the env map is on: each splat's roughness sets how blurred its "
+            "reflection is (mip level of the env map)", plan.envmap.evidence)  # fmt: skip
+    else:
+        plan.roughness = Decision(False, "no env map: nothing to blur", plan.envmap.evidence)
 
 
 def find_neighbours(
@@ -194,7 +216,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         mesh = Decision(False, "switched off by outputs.mesh (`glint mesh` makes one later)")
     plan = ScenePlan(
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
-            [float(c.intrinsics.fx) for c in cams], cfg), silhouette=decide_silhouette(scene, cfg)
+            [float(c.intrinsics.fx) for c in cams], cfg), silhouette=decide_silhouette(scene, cfg),
+        roughness=plan_roughness(cfg),
     )  # fmt: skip
     _apply_overrides(plan, cfg)
     return plan
@@ -245,7 +268,7 @@ def probe_view_dependence(
         gi, gj = (
             render_gbuffer(
                 gaussians, v.camera, sh_degree=0, backend=cfg.backend,
-                antialiased=cfg.antialiased, lowpass=cfg.lowpass_2d,
+                antialiased=cfg.antialiased, lowpass=cfg.lowpass_2d, with_roughness=False,
             )[0]
             for v in (vi, vj)
         )  # fmt: skip

@@ -40,6 +40,7 @@ from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
 from core.render.grazing import add_grazing_state
 from core.render.orientation import add_orientation_state, record_visibility
 from core.render.raster import resolve_backend
+from core.render.roughness import ROUGH_KEY, add_roughness_state, drop_roughness_state
 from core.render.shading import ShadeResult, deferred_shade
 from core.render.view_opacity import view_opacity_scale
 from core.scene.views import Scene, View
@@ -124,7 +125,7 @@ def forward_view(
         gb, res = render_gbuffer(
             gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
             antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
-            normals=normals,
+            normals=normals, with_roughness=phase.envmap and envmap is not None,
         )  # fmt: skip
     with stage("deferred_shading"):
         shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
@@ -213,6 +214,8 @@ class Trainer:
             add_grazing_state(self.gaussians)
         if self.plan.envmap_possible(self.cfg):
             self.envmap = EnvMap(int(self.plan.envmap_resolution.value)).to(self.device)
+        if self.plan.roughness_possible(self.cfg):
+            add_roughness_state(self.gaussians, self.cfg.init_roughness)
         self.optimizers = self._make_optimizers()
         self._prepare_silhouette()
         self.plan.save(self.out / "plan.json")
@@ -457,7 +460,7 @@ class Trainer:
                     gb_n, _ = render_gbuffer(
                         self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
                         antialiased=phase.antialiased, lowpass=phase.lowpass,
-                        opacity_scale=cull_n, normals=normals,
+                        opacity_scale=cull_n, normals=normals, with_roughness=False,
                     )  # fmt: skip
                 with stage("depth"):
                     d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
@@ -630,6 +633,9 @@ class Trainer:
             if not self.plan.envmap.value:
                 self.envmap = None
                 self.optimizers.pop("envmap", None)
+            if not self.plan.roughness_possible(self.cfg):  # nothing to blur: costs nothing
+                drop_roughness_state(self.gaussians)
+                self.optimizers.pop(ROUGH_KEY, None)
             self.plan.save(self.out / "plan.json")
             self.on_event({"type": "plan", "plan": self.plan.to_dict()})
 
