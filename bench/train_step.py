@@ -34,6 +34,7 @@ from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import geometry_depth, render_gbuffer
 from core.render.raster import rasterize, resolve_backend
+from core.render.roughness import add_roughness_state
 from core.render.shading import deferred_shade
 from core.scene.cameras import Camera
 from core.training.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
@@ -93,6 +94,8 @@ def run(args: argparse.Namespace) -> dict:
     aa = cfg.antialiased  # render the way training does
     cam, cam_nb = bench_camera(args.size), neighbour_camera(bench_camera(args.size))
     gs = make_gaussians(args.n, device)
+    if not args.no_roughness:  # the full model reads the env map's mips at each splat's ρ
+        add_roughness_state(gs, cfg.init_roughness)
     env = EnvMap(args.envmap).to(device)
     opts = make_optimizers(gs, cfg, 1.0)
     opts["envmap"] = torch.optim.Adam(env.parameters(), lr=cfg.lr.envmap)
@@ -134,7 +137,9 @@ def run(args: argparse.Namespace) -> dict:
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
-        gb_n, _ = render_gbuffer(gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa)
+        gb_n, _ = render_gbuffer(
+            gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa, with_roughness=False
+        )
         d_n, v_n = geometry_depth(gb_n, True)
         mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, n_pixels=4096)
         (loss + 0.1 * mv).backward()
@@ -165,6 +170,7 @@ def run(args: argparse.Namespace) -> dict:
         "backend": backend,
         "size": args.size,
         "n": args.n,
+        "roughness": not args.no_roughness,
         "rows": rows,
         "full_over_plain_step": by["full step (multi-view phase)"]["ms"] / by["plain step"]["ms"],
         "gbuffer_over_plain_render": by["G-buffer forward"]["ms"] / by["plain render"]["ms"],
@@ -209,6 +215,11 @@ def main(argv: list[str] | None = None) -> None:
         action="store_true",
         help="Glint's process layout (core.kernels.threads): torch on one thread, the compiled "
         "kernels on --threads (default: every usable CPU)",
+    )
+    ap.add_argument(
+        "--no-roughness",
+        action="store_true",
+        help="the model without per-splat roughness (mirror lookups, as before issue 36)",
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)
