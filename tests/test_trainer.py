@@ -58,7 +58,7 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
     assert {r["phase"] for r in rows} >= {"rgb", "multiview"}
     assert rows[-1]["psnr"] > rows[0]["psnr"]
     renders = {p.name for p in (tmp_path / "renders").glob("*.png")}
-    for ch in ("final", "base", "specular", "normal", "depth", "w_r", "alpha"):
+    for ch in ("final", "base", "specular", "normal", "depth", "w_r", "roughness", "alpha"):
         assert any(n.endswith(f"_{ch}.png") for n in renders), ch
     plan = json.loads((tmp_path / "plan.json").read_text())
     assert set(plan["decisions"]) == {
@@ -69,8 +69,12 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         "background",
         "mesh",
         "silhouette",
+        "roughness",
     }
     assert not plan["decisions"]["envmap"]["pending"]
+    # roughness is decided with the env map: on with it, off without it
+    rough = plan["decisions"]["roughness"]
+    assert not rough["pending"] and rough["value"] is plan["decisions"]["envmap"]["value"]
     # the scene has alpha: silhouette points were found and counted
     sil = plan["decisions"]["silhouette"]
     assert sil["value"] is True and sil["evidence"]["points"] > 0

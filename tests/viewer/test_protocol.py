@@ -60,7 +60,9 @@ def decode(jpeg: bytes) -> Image.Image:
 def test_hello_describes_job_and_model(trained_job: TrainedJob) -> None:
     with open_ws(trained_job) as (_ws, hello):
         assert hello["protocol"] == 1
-        assert hello["channels"] == ["final", "base", "specular", "normal", "depth", "w_r", "alpha"]
+        assert hello["channels"] == [
+            "final", "base", "specular", "normal", "depth", "w_r", "roughness", "alpha"
+        ]  # fmt: skip
         assert hello["job"]["state"] == "succeeded" and hello["job"]["iteration"] == 12
         assert hello["model"]["n_gaussians"] > 0 and hello["model"]["iteration"] == 12
         assert hello["model"]["radius"] > 0
