@@ -120,8 +120,9 @@ def deferred_shade(
         raise ValueError("deferred shading is enabled but no environment map was given")
 
     tensors = (base, gbuffer.normal, w_r, alpha)
-    if compiled and gbuffer.roughness is None and can_shade_compiled(tensors, envmap):
-        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap)
+    rough = gbuffer.roughness
+    if compiled and can_shade_compiled(tensors if rough is None else (*tensors, rough), envmap):
+        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough)
         return ShadeResult(final, base, specular, w_r, refl)
     _, view = cam.world_rays(dtype=base.dtype, device=base.device)
     refl = reflect(view, world_normals(gbuffer))

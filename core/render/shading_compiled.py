@@ -10,6 +10,15 @@ Same formulas as ``core.render.shading`` and ``core.render.envmap.sample_cube`` 
 to the lower axis, padded seamless bilinear taps, zero radiance for a degenerate
 direction); intermediate values are float64 and the outputs take the G-buffer's
 dtype. ``tests/test_shading_compiled.py`` checks it against the PyTorch path.
+
+Roughness. With a blended roughness the lookup is ``core.render.envmap_mips``'s: ρ is
+un-premultiplied by alpha per pixel (``shading.pixel_roughness``), turned into a level
+of detail (``roughness_to_lod``), and the two nearest levels of the mip chain are read
+with the same padded bilinear taps and blended linearly. The padded levels are packed
+in one flat buffer once per frame (first row and padded size of each level). Without
+roughness the buffer holds level 0 only and the roughness argument is ``None``, for
+which numba compiles a separate specialisation with the LOD code pruned: the same
+arithmetic, and the same speed, as before roughness existed.
 """
 
 from __future__ import annotations
@@ -23,13 +32,14 @@ from torch import Tensor
 
 from core.kernels.pool import run_ranges
 from core.render.envmap import EnvMap, pad_cube
+from core.render.envmap_mips import _packed_levels, cube_mip_chain
 
 __all__ = ["can_shade_compiled", "shade_compiled"]
 
 
 @njit(nogil=True, cache=True)
-def _face_uv(x, y, z, res):  # pragma: no cover - numba
-    """(face, column, row) of direction (x, y, z) in padded-face texel coordinates.
+def _face_st(x, y, z):  # pragma: no cover - numba
+    """(face, sc, tc, ma) of direction (x, y, z).
 
     Face and (sc, tc) as ``core.render.envmap.FACE_TABLE``; ties go to the lower axis.
     """
@@ -43,20 +53,37 @@ def _face_uv(x, y, z, res):  # pragma: no cover - numba
     else:
         face, ma = (4, az) if z >= 0 else (5, az)
         sc, tc = (x, -y) if z >= 0 else (-x, -y)
+    return face, sc, tc, ma
+
+
+@njit(nogil=True, cache=True)
+def _tap(face, sc, tc, ma, offset, p):  # pragma: no cover - numba
+    """First flat index and bilinear weights (fx, fy) of the 2×2 taps in a padded level
+    of size ``p`` (face size p − 2) whose face 0 starts at flat row ``offset``."""
+    res = p - 2
     k = 0.5 * res / ma
     c = 0.5 * res + 0.5
-    return face, sc * k + c, tc * k + c
+    x = sc * k + c
+    y = tc * k + c
+    x0 = min(max(math.floor(x), 0.0), p - 2.0)
+    y0 = min(max(math.floor(y), 0.0), p - 2.0)
+    return offset + face * p * p + int(y0) * p + int(x0), x - x0, y - y0
 
 
 @njit(nogil=True, cache=True)
 def _shade_rows(
-    lo, hi, base, normal, w_r, alpha, bg, rot, intr, padded, res, min_major,
-    final, specular, refl,
+    lo, hi, base, normal, w_r, alpha, rough, bg, rot, intr, packed, offsets, sizes,
+    lod_scale, min_major, final, specular, refl,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Shade pixel rows [lo, hi): final, specular and reflected direction per pixel."""
+    """Shade pixel rows [lo, hi): final, specular and reflected direction per pixel.
+
+    ``packed`` holds the padded mip levels (level 0 only when ``rough`` is None),
+    level k from row ``offsets[k]`` with padded size ``sizes[k]``.
+    """
     width = base.shape[1]
-    n_ch = padded.shape[-1]
-    p = res + 2
+    n_ch = packed.shape[-1]
+    top_lod = float(offsets.shape[0] - 1)
+    lo_max = max(offsets.shape[0] - 2, 0)
     ifx, ify, cx, cy = 1.0 / intr[0], 1.0 / intr[1], intr[2], intr[3]
     r00, r01, r02 = rot[0, 0], rot[0, 1], rot[0, 2]
     r10, r11, r12 = rot[1, 0], rot[1, 1], rot[1, 2]
@@ -95,18 +122,37 @@ def _shade_rows(
             # w_r = 0 (background, diffuse surfaces) makes the specular term exactly 0:
             # the env map is finite, so the lookup is skipped there.
             if w != 0.0 and math.isfinite(dx + dy + dz) and big > min_major:
-                face, x, y = _face_uv(dx, dy, dz, res)
-                x0 = min(max(math.floor(x), 0.0), p - 2.0)
-                y0 = min(max(math.floor(y), 0.0), p - 2.0)
-                fxw = x - x0
-                fyw = y - y0
-                t00 = face * p * p + int(y0) * p + int(x0)
+                face, sc, tc, ma = _face_st(dx, dy, dz)
+                level = 0
+                frac = 0.0
+                t10, gxw, gyw, q = 0, 0.0, 0.0, 0
+                if rough is not None:  # pruned at compile time for a None roughness
+                    # pixel_roughness, roughness_to_lod and sample_cube_lod's LOD split.
+                    a = np.float64(alpha[j, i])
+                    rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
+                    rho = min(rho, 1.0) if rho > 0.0 else 0.0  # NaN reads as a mirror
+                    xl = rho * rho * lod_scale
+                    lod = min(0.5 * math.log2(1.0 + xl * xl), top_lod)
+                    level = min(math.floor(lod), lo_max)  # lod >= 0
+                    frac = lod - level
+                t00, fxw, fyw = _tap(face, sc, tc, ma, offsets[level], sizes[level])
+                p = sizes[level]
+                if frac != 0.0:  # a second level (frac = 0 would add 0 to the first)
+                    t10, gxw, gyw = _tap(face, sc, tc, ma, offsets[level + 1], sizes[level + 1])
+                    q = sizes[level + 1]
                 for c in range(n_ch):
-                    a00, a01 = padded[t00, c], padded[t00 + 1, c]
-                    a10, a11 = padded[t00 + p, c], padded[t00 + p + 1, c]
+                    a00, a01 = packed[t00, c], packed[t00 + 1, c]
+                    a10, a11 = packed[t00 + p, c], packed[t00 + p + 1, c]
                     top = a00 + fxw * (a01 - a00)
                     bot = a10 + fxw * (a11 - a10)
-                    spec = w * (top + fyw * (bot - top))
+                    val = top + fyw * (bot - top)
+                    if frac != 0.0:
+                        b00, b01 = packed[t10, c], packed[t10 + 1, c]
+                        b10, b11 = packed[t10 + q, c], packed[t10 + q + 1, c]
+                        top = b00 + gxw * (b01 - b00)
+                        bot = b10 + gxw * (b11 - b10)
+                        val = val + frac * (top + gyw * (bot - top) - val)
+                    spec = w * val
                     specular[j, i, c] = spec
                     final[j, i, c] = base[j, i, c] + spec + fill * bg[c]
             else:
@@ -129,12 +175,20 @@ def can_shade_compiled(tensors: tuple[Tensor, ...], envmap: EnvMap) -> bool:
 
 
 def shade_compiled(
-    base: Tensor, normal: Tensor, w_r: Tensor, alpha: Tensor, bg: Tensor, camera, envmap: EnvMap
+    base: Tensor,
+    normal: Tensor,
+    w_r: Tensor,
+    alpha: Tensor,
+    bg: Tensor,
+    camera,
+    envmap: EnvMap,
+    roughness: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(final, specular, reflected_dir) of one view, as ``deferred_shade`` computes them.
 
     ``base``/``normal`` (H, W, 3), ``w_r``/``alpha`` (H, W) and ``bg`` (3,) as in the
-    G-buffer; ``camera`` is the G-buffer's camera. No autograd graph is built.
+    G-buffer; ``camera`` is the G-buffer's camera; ``roughness`` (H, W) the G-buffer's
+    blended roughness, or None for the sharp lookup. No autograd graph is built.
     """
     dtype = base.dtype
     npdt = np.float32 if dtype == torch.float32 else np.float64
@@ -145,17 +199,24 @@ def shade_compiled(
 
     with torch.no_grad():
         texels = envmap.texels().detach().to(dtype)
-        padded = pad_cube(texels).reshape(-1, texels.shape[-1])
+        if roughness is None:
+            packed = pad_cube(texels).reshape(-1, texels.shape[-1])
+            offsets, sizes = [0], [texels.shape[1] + 2]
+        else:
+            packed, offsets, sizes = _packed_levels(cube_mip_chain(texels))
     i = camera.intrinsics
     intr = np.array([i.fx, i.fy, i.cx, i.cy], np.float64)
     rot = camera.R.detach().to(torch.float64).contiguous().numpy()
     min_major = math.sqrt(torch.finfo(dtype).tiny)
+    lod_scale = 4.0 * texels.shape[1] / (0.5 * math.pi)  # as roughness_to_lod
     final = np.empty((h, w, ch), npdt)
     specular = np.empty((h, w, ch), npdt)
     refl = np.empty((h, w, 3), npdt)
     args = (
-        arr(base), arr(normal), arr(w_r), arr(alpha), arr(bg), rot, intr, arr(padded),
-        int(texels.shape[1]), min_major, final, specular, refl,
+        arr(base), arr(normal), arr(w_r), arr(alpha),
+        None if roughness is None else arr(roughness), arr(bg), rot, intr, arr(packed),
+        np.array(offsets, np.int64), np.array(sizes, np.int64), lod_scale, min_major,
+        final, specular, refl,
     )  # fmt: skip
     run_ranges(_shade_rows, h, args)
     return torch.from_numpy(final), torch.from_numpy(specular), torch.from_numpy(refl)
