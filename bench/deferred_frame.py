@@ -10,6 +10,11 @@ and PyTorch shading, and SIMD and numba compositing, run side by side in the sam
 process; every round times every stage once (interleaved), so ratios and stage sums
 hold on a machine whose speed drifts. Prints a Markdown table and one JSON line per
 scene; peak RSS is the process's.
+
+Roughness: the shading of a second G-buffer of the same view with a per-splat roughness
+channel (ρ uniform in [0.05, 0.6), seeded: LODs across the env map's mip chain) is
+timed next to the sharp one (``shade_compiled_rough_ms``, ``shade_pytorch_rough_ms``):
+what a viewer frame of a model with roughness pays for the trilinear lookup.
 """
 
 from __future__ import annotations
@@ -88,12 +93,16 @@ def _blob_scene(n: int, size: int) -> dict:
 def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
     cam, env = s["camera"], s["env"]
     bg = torch.ones(3)
+    n = s["means"].shape[0]
+    g = torch.Generator().manual_seed(0)
+    rough = 0.05 + 0.55 * torch.rand(n, generator=g, dtype=s["means"].dtype)
     with torch.no_grad():
 
-        def gbuf():
+        def gbuf(roughness=None):
             return render_gbuffer_tensors(
                 s["means"], None, None, s["opacities"], s["colors"], s["normals"], s["w_r"],
                 cam, covariances=s["covariances"], backend="cpu", antialiased=True,
+                roughness=roughness,
             )[0]  # fmt: skip
 
         feats = gbuffer_features(s["means"], s["colors"], s["normals"], s["w_r"], cam)
@@ -108,6 +117,7 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
         bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, size, size)
         opac = s["opacities"] * proj.compensation
         gb = gbuf()
+        gb_rough = gbuf(rough)
         stages: dict[str, Callable[[], object]] = {
             "features_ms": lambda: gbuffer_features(
                 s["means"], s["colors"], s["normals"], s["w_r"], cam
@@ -121,6 +131,8 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
             "gbuffer_ms": gbuf,
             "shade_compiled_ms": lambda: deferred_shade(gb, env, bg),
             "shade_pytorch_ms": lambda: deferred_shade(gb, env, bg, compiled=False),
+            "shade_compiled_rough_ms": lambda: deferred_shade(gb_rough, env, bg),
+            "shade_pytorch_rough_ms": lambda: deferred_shade(gb_rough, env, bg, compiled=False),
             "frame_ms": lambda: deferred_shade(gbuf(), env, bg),
         }
         samples = _interleaved(stages, repeat)
@@ -138,6 +150,9 @@ def bench_scene(name: str, s: dict, size: int, repeat: int) -> dict:
     row["fps"] = round(1000.0 / row["frame_ms"], 2)
     row["fps_best"] = round(1000.0 / row["frame_best_ms"], 2)
     row["shade_speedup"] = round(row["shade_pytorch_ms"] / row["shade_compiled_ms"], 1)
+    row["shade_rough_speedup"] = round(
+        row["shade_pytorch_rough_ms"] / row["shade_compiled_rough_ms"], 1
+    )
     row["composite_speedup"] = round(row["compositing_numba_ms"] / row["compositing_ms"], 1)
     row["compositing_kernel"] = "simd" if cpu_simd.why_unavailable() is None else "numba"
     row["peak_rss_mib"] = round(peak_rss_mib(), 1)
@@ -160,8 +175,9 @@ def main(argv: list[str] | None = None) -> None:
     print(f"{machine_line()}, {kernel_threads()} kernel threads; medians of {args.repeat}\n")
     cols = [
         "scene", "tile_pairs", "features_ms", "projection_ms", "binning_ms", "compositing_ms",
-        "compositing_numba_ms", "gbuffer_ms", "shade_compiled_ms", "shade_pytorch_ms",
-        "frame_ms", "fps", "frame_best_ms", "fps_best", "peak_rss_mib",
+        "compositing_numba_ms", "gbuffer_ms", "shade_compiled_ms", "shade_compiled_rough_ms",
+        "shade_pytorch_ms", "shade_pytorch_rough_ms", "frame_ms", "fps", "frame_best_ms",
+        "fps_best", "peak_rss_mib",
     ]  # fmt: skip
     print("| " + " | ".join(cols) + " |")
     print("|" + "---|" * len(cols))
