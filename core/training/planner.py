@@ -220,6 +220,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         roughness=plan_roughness(cfg),
     )  # fmt: skip
     _apply_overrides(plan, cfg)
+    if not plan.envmap.pending:  # the user set the env map: no probe will decide roughness
+        decide_roughness(plan)
     return plan
 
 
