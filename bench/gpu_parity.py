@@ -8,7 +8,7 @@ blob of flat Gaussians, seen straight and at a grazing angle): the blended featu
 alpha, the gradients to means, rotations, scales, opacities and features, and through
 the G-buffer the planar depth (Eq. 8), the normals and the deferred shading (Eq. 9), each
 as the largest absolute difference to the ``reference`` backend. A difference above
-its tolerance is a failure, listed by name.
+its tolerance is a failure, listed by name (see ``FLIP_SPAN`` for the compiled CPU path's).
 """
 
 from __future__ import annotations
@@ -26,6 +26,7 @@ from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import geometry_depth, render_gbuffer
 from core.render.raster import rasterize, resolve_backend
+from core.render.raster.projection import ALPHA_MIN
 from core.render.shading import deferred_shade
 from core.scene.cameras import Camera
 
@@ -33,9 +34,31 @@ from core.scene.cameras import Camera
 TOLERANCE = {"cpu": 5e-4, "cuda": 5e-3}
 GRAD_TOLERANCE = {"cpu": 1e-3, "cuda": 2e-2}  # relative to the reference gradient's scale
 
+# "cpu" composites by the reference's rule (on the same projection and bins the two agree to
+# ~2e-6), but projects with its own compiled kernel (float64 arithmetic,
+# core/render/raster/projection_compiled.py) where the reference projects in float32 torch:
+# a Gaussian's exponent at a pixel differs by float32 rounding (~2e-5). Where its alpha there
+# is that close to the ALPHA_MIN = 1/255 cut, one backend composites it and the other skips
+# it, and the pixel moves by ALPHA_MIN·T·f - ALPHA_MIN·R (T the transmittance in front, f the
+# Gaussian's value, R the blend of those behind, weights summing to at most T): at most
+# ALPHA_MIN × the span of the channel's per-Gaussian values and 0 (the deferred image is
+# 1 + Σ w·(base - 0.75) with the grey env map, w_r 0.5 and a white background). Measured at
+# 256², 20k Gaussians: 2-3 such pixels in 65536 (grazing (221, 78): Gaussian 15041 at alpha
+# 0.003922 behind T = 0.32, alpha off by 0.00126), every other pixel within TOLERANCE. So a
+# figure in FLIP_SPAN may reach one flip's bound on isolated pixels: at most FLIP_PIXELS of
+# the image over TOLERANCE. (planar_depth, a quotient, has no such bound: 3.2e-4 at a flip.)
+FLIP_SPAN = {"features": 1.0, "alpha": 1.0, "normal": 2.0, "deferred_final": 1.0}
+FLIP_PIXELS = 1e-3
+
 
 def _max_abs(a: torch.Tensor, b: torch.Tensor) -> float:
-    return float((a.detach().float().cpu() - b.detach().float().cpu()).abs().max())
+    return float(_pixel_diff(a, b).max())
+
+
+def _pixel_diff(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """|a - b| per pixel (the largest over channels of an (H, W, C) image)."""
+    d = (a.detach().float().cpu() - b.detach().float().cpu()).abs()
+    return d.amax(-1) if d.ndim == 3 else d
 
 
 def _rel_grad(a: torch.Tensor, b: torch.Tensor) -> float:
@@ -96,13 +119,14 @@ def compare(device: str, small: bool) -> dict[str, Any]:
             got = raster_case(b, dev, n, size, cam, seed=1)
             got_gb = gbuffer_case(b, dev, n, cam, seed=2)
             both = ref_gb["valid"] & got_gb["valid"]
-            figures = {
-                "features": _max_abs(got["features"], ref["features"]),
-                "alpha": _max_abs(got["alpha"], ref["alpha"]),
-                "planar_depth": _max_abs(got_gb["depth"] * both, ref_gb["depth"] * both),
-                "normal": _max_abs(got_gb["normal"], ref_gb["normal"]),
-                "deferred_final": _max_abs(got_gb["final"], ref_gb["final"]),
+            maps = {
+                "features": _pixel_diff(got["features"], ref["features"]),
+                "alpha": _pixel_diff(got["alpha"], ref["alpha"]),
+                "planar_depth": _pixel_diff(got_gb["depth"] * both, ref_gb["depth"] * both),
+                "normal": _pixel_diff(got_gb["normal"], ref_gb["normal"]),
+                "deferred_final": _pixel_diff(got_gb["final"], ref_gb["final"]),
             }
+            figures = {k: float(m.max()) for k, m in maps.items()}
             names = ("means", "quats", "scales", "opacities", "features")
             for name, ga, gr in zip(names, got["grads"], ref["grads"], strict=True):
                 figures[f"grad_{name}_rel"] = _rel_grad(ga, gr)
@@ -110,6 +134,12 @@ def compare(device: str, small: bool) -> dict[str, Any]:
                 key = f"{b}/{scene}/{k}"
                 errors[key] = float(f"{v:.3g}")
                 tol = GRAD_TOLERANCE[b] if k.startswith("grad_") else TOLERANCE[b]
+                if b == "cpu" and k in FLIP_SPAN:  # isolated flips at the 1/255 cut
+                    over = int((maps[k] > tol).sum())
+                    allowed = int(FLIP_PIXELS * maps[k].numel())
+                    if over > allowed:
+                        failures.append(f"{key}: {over} px > {tol:g} (at most {allowed})")
+                    tol = ALPHA_MIN * FLIP_SPAN[k]
                 if not (v <= tol):
                     failures.append(f"{key} = {v:.3g} > {tol:g}")
     return {"device": device, "n": n, "size": size, "errors": errors, "failures": failures}
