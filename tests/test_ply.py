@@ -13,6 +13,7 @@ from plyfile import PlyData, PlyElement
 from core.errors import SceneError
 from core.outputs.ply import DEFAULT_IMPORT_REFL, load_ply, save_ply
 from core.render.gaussians import PARAM_SHAPES, Gaussians
+from core.render.roughness import ROUGH_KEY, add_roughness_state, has_roughness, roughness
 
 # The 3DGS layout written out by hand (not via core.outputs.ply) so a change there is caught.
 EXPECTED_NAMES = (
@@ -213,3 +214,59 @@ def test_ascii_ply_loads(tmp_path: Path) -> None:
     h = load_ply(ascii_path)
     for k in g.params:
         torch.testing.assert_close(h.params[k], g.params[k].detach(), rtol=1e-6, atol=1e-6)
+
+
+def rough_gaussians(n: int = 23, seed: int = 5) -> Gaussians:
+    g = random_gaussians(n, seed)
+    add_roughness_state(g)
+    with torch.no_grad():  # distinct per splat, extremes included
+        g.params[ROUGH_KEY].copy_(torch.randn(n, generator=torch.Generator().manual_seed(seed)) * 3)
+        g.params[ROUGH_KEY][0] = -30.0
+    return g
+
+
+def test_roughness_is_exported_after_refl_logit_and_read_back(tmp_path: Path) -> None:
+    g = rough_gaussians()
+    v = PlyData.read(str(save_ply(g, tmp_path / "g.ply")))["vertex"]
+    assert [p.name for p in v.properties] == [*EXPECTED_NAMES, "rough_logit"]
+    assert v.data.dtype["rough_logit"] == np.dtype("<f4")
+    # the logit, as refl_logit: ρ = sigmoid(rough_logit)
+    np.testing.assert_array_equal(v["rough_logit"], g.params[ROUGH_KEY].detach().numpy())
+    h = load_ply(tmp_path / "g.ply")
+    assert has_roughness(h) and set(h.params) == set(g.params)
+    for k in g.params:
+        assert torch.equal(h.params[k].view(torch.int32), g.params[k].detach().view(torch.int32)), k
+    torch.testing.assert_close(roughness(h), roughness(g).detach())
+    assert h.params[ROUGH_KEY].requires_grad  # a parameter like the others
+
+
+def test_files_without_roughness_load_without_it(tmp_path: Path) -> None:
+    # ours from before roughness (and any model without it): no property, no state
+    plain = random_gaussians(6)
+    v = PlyData.read(str(save_ply(plain, tmp_path / "plain.ply")))["vertex"]
+    assert "rough_logit" not in [p.name for p in v.properties]
+    assert not has_roughness(load_ply(tmp_path / "plain.ply"))
+    # a rough model's file with the property taken out reads as a mirror model
+    src = save_ply(rough_gaussians(6), tmp_path / "rough.ply")
+    _rewrite_without(src, tmp_path / "old.ply", "rough_logit")
+    old = load_ply(tmp_path / "old.ply")
+    assert not has_roughness(old) and old.num == 6
+    # 3DGS files too
+    write_3dgs_style(tmp_path / "3dgs.ply", plain, 15)
+    assert not has_roughness(load_ply(tmp_path / "3dgs.ply"))
+
+
+def test_non_finite_roughness_is_refused_both_ways(tmp_path: Path) -> None:
+    g = rough_gaussians(4)
+    with torch.no_grad():
+        g.params[ROUGH_KEY][2] = float("inf")
+    with pytest.raises(ValueError, match=ROUGH_KEY):
+        save_ply(g, tmp_path / "refused.ply")
+    good = save_ply(rough_gaussians(4), tmp_path / "g.ply")
+    v = PlyData.read(str(good))["vertex"].data.copy()
+    v["rough_logit"][1] = np.nan
+    bad = tmp_path / "nan.ply"
+    PlyData([PlyElement.describe(v, "vertex")]).write(str(bad))
+    with pytest.raises(SceneError) as err:
+        load_ply(bad)
+    assert err.value.field == "rough_logit"

@@ -3,6 +3,7 @@
 Properties, all float32, in this order (3DGS ``save_ply``)::
 
     x y z  nx ny nz  f_dc_0..2  f_rest_0..44  opacity  scale_0..2  rot_0..3  refl_logit
+    [rough_logit]
 
 * ``opacity`` is the logit, ``scale_*`` the log scale, ``rot_*`` the raw (w, x, y, z)
   quaternion: the unconstrained parameters themselves, so a round trip is bit-exact.
@@ -13,6 +14,10 @@ Properties, all float32, in this order (3DGS ``save_ply``)::
   show the surface orientation.
 * ``refl_logit`` (w_r = sigmoid) is an extra property; 3DGS viewers ignore unknown
   properties. Files without it import with w_r = ``default_refl``.
+* ``rough_logit`` (roughness ρ = sigmoid, ``core.render.roughness``) is written only
+  for a model that has a roughness, after ``refl_logit``; a file with it imports with
+  it, a file without it (any 3DGS file, or ours from before) as a model without one
+  (a mirror lookup).
 
 Import also accepts fewer ``f_rest`` (degrees 0..2); the missing coefficients are zero.
 """
@@ -29,6 +34,7 @@ from plyfile import PlyData, PlyElement
 from core.errors import SceneError
 from core.model.checkpoint import atomic_write
 from core.render.gaussians import Gaussians, scalar_logit
+from core.render.roughness import ROUGH_KEY, has_roughness
 from core.render.sh import MAX_SH_DEGREE, num_sh_bases, sh_degree_from_bases
 
 N_REST = num_sh_bases(MAX_SH_DEGREE) - 1  # 15 coefficients per channel
@@ -37,7 +43,9 @@ N_REST = num_sh_bases(MAX_SH_DEGREE) - 1  # 15 coefficients per channel
 DEFAULT_IMPORT_REFL = 1e-4
 
 
-def ply_property_names(n_rest: int = N_REST, with_refl: bool = True) -> list[str]:
+def ply_property_names(
+    n_rest: int = N_REST, with_refl: bool = True, with_rough: bool = False
+) -> list[str]:
     """Property names in file order for ``n_rest`` coefficients per channel."""
     names = ["x", "y", "z", "nx", "ny", "nz"]
     names += [f"f_dc_{i}" for i in range(3)]
@@ -45,6 +53,8 @@ def ply_property_names(n_rest: int = N_REST, with_refl: bool = True) -> list[str
     names += ["opacity"] + [f"scale_{i}" for i in range(3)] + [f"rot_{i}" for i in range(4)]
     if with_refl:
         names.append("refl_logit")
+    if with_rough:
+        names.append("rough_logit")
     return names
 
 
@@ -56,6 +66,7 @@ def gaussians_to_array(g: Gaussians) -> np.ndarray:
     f_rest = p["sh_rest"].transpose(1, 2).reshape(n, 3 * N_REST)  # channel-major
     with torch.no_grad():
         normals = g.normals().detach().to("cpu", torch.float32)
+    rough = has_roughness(g)
     cols = torch.cat(
         [
             p["means"],
@@ -66,10 +77,11 @@ def gaussians_to_array(g: Gaussians) -> np.ndarray:
             p["log_scales"],
             p["quats"],
             p["refl_logits"][:, None],
+            *([p[ROUGH_KEY][:, None]] if rough else []),
         ],
         dim=1,
     ).numpy()
-    names = ply_property_names()
+    names = ply_property_names(with_rough=rough)
     arr = np.empty(n, dtype=[(name, "<f4") for name in names])
     for i, name in enumerate(names):
         arr[name] = cols[:, i]
@@ -170,4 +182,6 @@ def load_ply(
         "sh_rest": sh_rest,
         "refl_logits": refl,
     }
+    if "rough_logit" in names:
+        params[ROUGH_KEY] = cols("rough_logit")[:, 0]
     return Gaussians({k: v.to(device) for k, v in params.items()}, sh_degree=sh_degree)
