@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from plyfile import PlyData, PlyElement
 
-from core.benchmark.configs import CONFIGS, LABELS, bench_config, parse_configs
+from core.benchmark.configs import CONFIGS, LABELS, TABLE_ORDER, bench_config, parse_configs
 from core.benchmark.tables import mean_curve, results_table
 from core.cli import main
 from core.errors import GlintError
@@ -246,10 +246,17 @@ def test_bench_configs_take_a_time_budget() -> None:
 
 def test_paper_row_switches_off_every_addition_and_full_keeps_them() -> None:
     additions = ("silhouette", "one_sided", "grazing_opacity", "same_surface_normals",
-                 "facing_depth")  # fmt: skip
+                 "facing_depth", "roughness")  # fmt: skip
     paper, full = bench_config("paper", 300, 0.5), bench_config("full", 300, 0.5)
     for name in additions:
         assert getattr(paper.ablation, name) is False, name
         assert getattr(full.ablation, name) is True, name
     assert bench_config("all_angles", 300, 0.5).ablation.facing_depth is False
     assert bench_config("central_normals", 300, 0.5).ablation.same_surface_normals is False
+    rough = bench_config("no_roughness", 300, 0.5)
+    assert rough.ablation.roughness is False and rough.ablation.deferred_shading is True
+    assert rough.plan_overrides == {"envmap": True}  # the env map stays: only mirror lookups
+    assert parse_configs("no_roughness") == ["no_roughness"]
+    assert "roughness" in LABELS["no_roughness"] and "no_roughness" in TABLE_ORDER
+    # every configuration has a label and a place in the table
+    assert set(LABELS) == set(CONFIGS) == set(TABLE_ORDER)

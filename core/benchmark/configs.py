@@ -1,6 +1,6 @@
 """The benchmark's configurations: the paper's Table 3 ablations, Glint's additions
-switched off (silhouette points, one-sided splats, grazing opacity; all off = the
-paper's full model) and an SH-only baseline."""
+switched off (silhouette points, one-sided splats, grazing opacity, roughness-aware
+reflection; all off = the paper's full model) and an SH-only baseline."""
 
 from __future__ import annotations
 
@@ -21,6 +21,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "no_silhouette": {"silhouette": False},
     "two_sided": {"one_sided": False},
     "no_grazing": {"grazing_opacity": False},
+    "no_roughness": {"roughness": False},
     "central_normals": {"same_surface_normals": False},
     "all_angles": {"facing_depth": False},
     "paper": {
@@ -29,6 +30,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "grazing_opacity": False,
         "same_surface_normals": False,
         "facing_depth": False,
+        "roughness": False,
     },
     "sh_only": {
         "deferred_shading": False,
@@ -50,10 +52,11 @@ LABELS = {
     "no_silhouette": "w/o silhouette points",
     "two_sided": "w/o one-sided splats",
     "no_grazing": "w/o grazing opacity",
+    "no_roughness": "w/o roughness (mirror env-map lookups, Eq. 9)",
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
-    "paper": "PGSR-DR as published (two-sided splats; w/o silhouette points, grazing opacity, "
-    "same-surface depth normals, facing-only depth losses)",
+    "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
+    "points, grazing opacity, same-surface depth normals, facing-only depth losses)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
@@ -66,6 +69,7 @@ TABLE_ORDER = (
     "no_silhouette",
     "two_sided",
     "no_grazing",
+    "no_roughness",
     "central_normals",
     "all_angles",
     "paper",
