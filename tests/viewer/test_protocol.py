@@ -7,8 +7,10 @@ import io
 import json
 import math
 import os
+import re
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -17,6 +19,7 @@ from PIL import Image
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import ClientConnection, connect
 
+from core.model.channels import CHANNELS
 from tests.viewer.conftest import TrainedJob
 from viewer_web.protocol import unpack_frame
 
@@ -66,6 +69,16 @@ def test_hello_describes_job_and_model(trained_job: TrainedJob) -> None:
         assert hello["job"]["state"] == "succeeded" and hello["job"]["iteration"] == 12
         assert hello["model"]["n_gaussians"] > 0 and hello["model"]["iteration"] == 12
         assert hello["model"]["radius"] > 0
+
+
+def test_every_channel_has_a_label_in_the_viewer() -> None:
+    """viewer.js names each channel the server announces (else its button shows the raw
+    key); the labels map is one line of literal ``key: "Label"`` pairs."""
+    js = (Path(__file__).resolve().parents[2] / "viewer_web" / "static" / "viewer.js").read_text()
+    line = next(ln for ln in js.splitlines() if "const labels = {" in ln)
+    labels = dict(re.findall(r'(\w+): "([^"]+)"', line))
+    assert set(CHANNELS) <= set(labels), set(CHANNELS) - set(labels)
+    assert labels["roughness"] == "Roughness"
 
 
 def test_frame_for_camera(trained_job: TrainedJob) -> None:

@@ -315,7 +315,7 @@
   function buildChannels() {
     const box = $("channels");
     box.textContent = "";
-    const labels = { final: "Final", base: "Base colour", specular: "Specular", normal: "Normal", depth: "Depth", w_r: "Reflectance w_r", alpha: "Alpha" };
+    const labels = { final: "Final", base: "Base colour", specular: "Specular", normal: "Normal", depth: "Depth", w_r: "Reflectance w_r", roughness: "Roughness", alpha: "Alpha" };
     for (const ch of state.channels) {
       const b = document.createElement("button");
       b.type = "button";
