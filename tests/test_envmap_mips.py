@@ -296,3 +296,15 @@ def test_degenerate_directions_give_zero_and_zero_gradient(lod_value):
     tex.grad = None
     sample_cube_lod(tex, dirs, lod.detach()).sum().backward()
     torch.testing.assert_close(tex.grad, tex2.grad)
+
+
+def test_a_nan_lod_gives_nan_there_and_nothing_else_changes():
+    """A NaN roughness (a NaN anywhere in the G-buffer) must reach the loss as NaN, for
+    the trainer's guard to skip the step, not index a garbage level."""
+    tex = random_cube(8)
+    dirs = random_dirs(4)
+    lod = torch.tensor([0.5, float("nan"), 1.0, 3.0], dtype=F64)
+    out = sample_cube_lod(tex, dirs, lod)
+    assert torch.isnan(out[1]).all()
+    ok = [0, 2, 3]
+    torch.testing.assert_close(out[ok], sample_cube_lod(tex, dirs[ok], lod[ok]))

@@ -94,7 +94,9 @@ def sample_cube_lod(texels: Tensor, dirs: Tensor, lod: Tensor) -> Tensor:
     d = torch.where(valid.unsqueeze(-1), d, plus_z)
     face, u, v = direction_to_face_uv(d)
     lod = lod.reshape(-1).to(texels.dtype).clamp(0.0, float(len(levels) - 1))
-    lo = lod.detach().floor().long().clamp(max=max(len(levels) - 2, 0))
+    # a NaN LOD reads level 0 with a NaN weight: NaN out (the trainer's guard skips the
+    # step), never a garbage level index (NaN.long() is the most negative integer)
+    lo = lod.detach().nan_to_num(0.0).floor().long().clamp(0, max(len(levels) - 2, 0))
     frac = (lod - lo.to(lod.dtype)).unsqueeze(-1)
 
     flat, offsets, sizes = _packed_levels(levels)
