@@ -155,6 +155,16 @@ def _min_major(dtype: torch.dtype) -> float:
     return math.sqrt(torch.finfo(dtype).tiny)
 
 
+def guarded_face_uv(dirs: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Flattened (valid, face, u, v) of directions (..., 3): a non-finite or zero-length
+    direction is marked invalid and projected as +Z, so nothing downstream sees NaN."""
+    d = dirs.reshape(-1, 3).to(dtype)
+    valid = torch.isfinite(d).all(dim=-1) & (d.abs().amax(dim=-1) > _min_major(d.dtype))
+    plus_z = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype, device=d.device)
+    d = torch.where(valid.unsqueeze(-1), d, plus_z)
+    return (valid, *direction_to_face_uv(d))
+
+
 def sample_cube(texels: Tensor, dirs: Tensor) -> Tensor:
     """Seamless bilinear lookup of cube texels (6, R, R, C) at directions (..., 3) -> (..., C).
 
@@ -169,11 +179,7 @@ def sample_cube(texels: Tensor, dirs: Tensor) -> Tensor:
     r, ch = texels.shape[1], texels.shape[-1]
     p = r + 2
     lead = dirs.shape[:-1]
-    d = dirs.reshape(-1, 3).to(texels.dtype)
-    valid = torch.isfinite(d).all(dim=-1) & (d.abs().amax(dim=-1) > _min_major(d.dtype))
-    plus_z = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype, device=d.device)
-    d = torch.where(valid.unsqueeze(-1), d, plus_z)
-    face, u, v = direction_to_face_uv(d)
+    valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
 
     # Continuous coordinates in the padded face, texel centres at integers:
     # u = -1 -> 0.5 (edge between border and first texel), u = +1 -> R + 0.5.

@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from core.render.envmap import _min_major, _PaddedBilinear, direction_to_face_uv, pad_cube
+from core.render.envmap import _PaddedBilinear, guarded_face_uv, pad_cube
 
 
 def mip_sizes(resolution: int) -> list[int]:
@@ -88,11 +88,7 @@ def sample_cube_lod(texels: Tensor, dirs: Tensor, lod: Tensor) -> Tensor:
     levels = cube_mip_chain(texels)
     ch = texels.shape[-1]
     lead = dirs.shape[:-1]
-    d = dirs.reshape(-1, 3).to(texels.dtype)
-    valid = torch.isfinite(d).all(dim=-1) & (d.abs().amax(dim=-1) > _min_major(d.dtype))
-    plus_z = torch.tensor([0.0, 0.0, 1.0], dtype=d.dtype, device=d.device)
-    d = torch.where(valid.unsqueeze(-1), d, plus_z)
-    face, u, v = direction_to_face_uv(d)
+    valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
     lod = lod.reshape(-1).to(texels.dtype).clamp(0.0, float(len(levels) - 1))
     # a NaN LOD reads level 0 with a NaN weight: NaN out (the trainer's guard skips the
     # step), never a garbage level index (NaN.long() is the most negative integer)
@@ -100,9 +96,9 @@ def sample_cube_lod(texels: Tensor, dirs: Tensor, lod: Tensor) -> Tensor:
     frac = (lod - lo.to(lod.dtype)).unsqueeze(-1)
 
     flat, offsets, sizes = _packed_levels(levels)
-    off_t = torch.tensor(offsets, device=d.device)
-    res_t = torch.tensor([t.shape[1] for t in levels], device=d.device)
-    pad_t = torch.tensor(sizes, device=d.device)
+    off_t = torch.tensor(offsets, device=texels.device)
+    res_t = torch.tensor([t.shape[1] for t in levels], device=texels.device)
+    pad_t = torch.tensor(sizes, device=texels.device)
 
     def tap(k: Tensor) -> Tensor:
         r = res_t[k].to(u.dtype)
