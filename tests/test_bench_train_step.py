@@ -5,12 +5,16 @@ from __future__ import annotations
 import argparse
 import math
 
+import pytest
+
 from bench.common import bench_camera
 from bench.train_step import format_table, neighbour_camera, run
 
 
-def test_train_step_bench_runs_on_cpu():
+@pytest.mark.parametrize("no_roughness", [False, True])
+def test_train_step_bench_runs_on_cpu(no_roughness: bool):
     args = argparse.Namespace(
+        no_roughness=no_roughness,
         device="cpu",
         backend="cpu",
         size=32,
@@ -27,6 +31,7 @@ def test_train_step_bench_runs_on_cpu():
     assert all(r["ms"] > 0 and math.isfinite(r["ms"]) for r in res["rows"])
     assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
     assert "full step / plain step" in format_table(res)
+    assert res["roughness"] is not no_roughness  # the full model as trained, or without it
 
 
 def test_neighbour_camera_keeps_the_target_in_view():
