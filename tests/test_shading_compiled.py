@@ -55,6 +55,17 @@ def _gbuffer(cam: Camera, dtype: torch.dtype, seed: int) -> GBuffer:
     )
 
 
+def _assert_same_shading(got, want, dtype) -> None:
+    """Compiled vs PyTorch shading: float64 intermediates vs the PyTorch path's own dtype,
+    so float32 differs by rounding."""
+    tol = dict(rtol=2e-5, atol=2e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
+    for name in ("final", "specular", "reflected_dir"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and a.shape == b.shape, name
+        torch.testing.assert_close(a, b, **tol, msg=name)
+    assert torch.isfinite(got.final).all()
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 @pytest.mark.parametrize("seed,res", [(0, 1), (1, 4), (2, 16)])
 def test_compiled_shading_matches_the_pytorch_path(dtype, seed, res):
@@ -67,13 +78,7 @@ def test_compiled_shading_matches_the_pytorch_path(dtype, seed, res):
         assert can_shade_compiled((gb.base, gb.normal, gb.w_r, gb.alpha), env)
         got = deferred_shade(gb, env, bg)
         want = deferred_shade(gb, env, bg, compiled=False)
-    # float64 intermediates vs the PyTorch path's own dtype: float32 differs by rounding.
-    tol = dict(rtol=2e-5, atol=2e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
-    for name in ("final", "specular", "reflected_dir"):
-        a, b = getattr(got, name), getattr(want, name)
-        assert a.dtype == b.dtype and a.shape == b.shape, name
-        torch.testing.assert_close(a, b, **tol, msg=name)
-    assert torch.isfinite(got.final).all()
+    _assert_same_shading(got, want, dtype)
 
 
 def test_degenerate_directions_give_zero_radiance_as_in_pytorch():
@@ -163,12 +168,7 @@ def test_compiled_shading_with_roughness_matches_the_pytorch_path(dtype, seed, r
         got = deferred_shade(gb, env, bg)
         want = deferred_shade(gb, env, bg, compiled=False)
         sharp = deferred_shade(dataclasses.replace(gb, roughness=None), env, bg)
-    tol = dict(rtol=2e-5, atol=2e-5) if dtype == torch.float32 else dict(rtol=1e-10, atol=1e-12)
-    for name in ("final", "specular", "reflected_dir"):
-        a, b = getattr(got, name), getattr(want, name)
-        assert a.dtype == b.dtype and a.shape == b.shape, name
-        torch.testing.assert_close(a, b, **tol, msg=name)
-    assert torch.isfinite(got.final).all()
+    _assert_same_shading(got, want, dtype)
     # The roughness is read: where the LOD is above 0 the lookup is not the sharp one.
     blurred = (lod > 0.5) & (gb.w_r > 0.05)
     if levels > 1:
