@@ -291,6 +291,40 @@ class JobCreate(BaseModel):
     )
 
 
+ASSET_TEXTURE_SIZES = tuple(2**k for k in range(6, 13))  # 64 .. 4096
+
+
+class AssetCreate(BaseModel):
+    """A relightable asset baked from the mesh (core.asset's AssetOptions, same bounds).
+
+    The bounds live here as well as in core.asset so a bad request is a 422 naming the
+    field, before a job is queued (the API process does not import the baker)."""
+
+    model_config = ConfigDict(extra="forbid")
+    faces: int = Field(
+        100_000,
+        ge=1000,
+        le=2_000_000,
+        description="face budget of the simplified, UV-unwrapped mesh of the asset",
+    )
+    texture_size: int = Field(
+        1024,
+        ge=64,
+        le=4096,
+        description="side of the baked textures in texels: a power of two, 64 to 4096",
+    )
+    views: int = Field(32, ge=1, le=256, description="how many training views are baked")
+    occlusion: bool = Field(True, description="bake ambient occlusion (the ORM texture's R)")
+
+    @field_validator("texture_size")
+    @classmethod
+    def _power_of_two(cls, size: int) -> int:
+        if size not in ASSET_TEXTURE_SIZES:
+            sizes = ", ".join(str(s) for s in ASSET_TEXTURE_SIZES)
+            raise ValueError(f"texture_size must be a power of two: one of {sizes}; got {size}")
+        return size
+
+
 class MeshCreate(BaseModel):
     """Parameters of a mesh extraction from a finished training job's checkpoint."""
 
@@ -324,6 +358,14 @@ class MeshCreate(BaseModel):
     )
     simplify: int | None = Field(
         None, ge=4, le=100_000_000, description="quadric decimation to about this many faces"
+    )
+    asset: AssetCreate | None = Field(
+        None,
+        description="also bake a relightable asset from this mesh: asset.glb (glTF 2.0, +Y "
+        "up, metallic-roughness textures), asset_env.hdr / asset_env.exr (the environment, "
+        "absent for a diffuse scene), asset.json and asset_preview.png become this job's "
+        "artifacts too; omitted: the mesh only. `{}` takes the defaults",
+        examples=[{"faces": 100_000, "texture_size": 1024, "views": 32, "occlusion": True}],
     )
     webhook: WebhookIn | None = Field(
         None,

@@ -5,6 +5,11 @@ job): it is queued like a training job (on a Celery worker when one runs, in the
 embedded runner otherwise), followed with ``GET /v1/jobs/{id}`` and its events,
 cancelled with ``POST /v1/jobs/{id}/cancel``, and its files are its artifacts
 (``mesh.ply``, ``mesh.glb``, ``mesh.obj``, ``mesh.json``, ``mesh_preview.png``).
+
+With ``asset`` in the body the job then bakes a relightable asset from that mesh
+(``core.asset``): ``asset.glb``, ``asset.json``, ``asset_preview.png`` and, when the
+model has an environment map, ``asset_env.hdr`` / ``asset_env.exr`` join its artifacts;
+the viewer's mesh view (``/viewer/{id}/mesh``) shows them.
 """
 
 from __future__ import annotations

@@ -79,6 +79,7 @@ CONTENT_TYPES = {
     ".txt": "text/plain; charset=utf-8",
     ".obj": "model/obj",
     ".glb": "model/gltf-binary",
+    ".hdr": "image/vnd.radiance",  # Radiance RGBE (the asset's environment)
 }
 
 
@@ -455,24 +456,125 @@ def _run_mesh(
     device: str | None,
     max_resolution: int,
 ) -> str:
-    """Extract a mesh from the parent job's checkpoint into ``out`` (all files or none)."""
+    """Extract a mesh from the parent job's checkpoint into ``out`` (all files or none),
+    then, when the request has an ``asset``, bake the relightable asset of that mesh.
+
+    The asset is baked from the mesh this job just made (its resolution, colour,
+    simplification), not from the parent's own mesh.ply, which ``asset_run`` would
+    take; so the runner opens the run once and calls ``mesh_model`` and
+    ``export_asset`` itself. A failed or cancelled bake keeps the finished mesh: its
+    files stay this job's artifacts, and a failure's error says why there is no asset.
+    """
     from core.meshing.mesh import MeshCancelledError, mesh_run
 
+    config = dict(config)
+    asset = config.pop("asset", None)  # not a mesh_model parameter
     out.mkdir(parents=True, exist_ok=True)
+    if asset is None:
+        try:
+            mesh_run(
+                parent_run,
+                out,
+                scene_dir,
+                device=device,
+                max_resolution=max_resolution,
+                **config,  # the MeshCreate request the API validated: mesh_model's parameters
+                on_event=reporter.on_event,
+                should_stop=reporter.should_stop,
+            )
+        except MeshCancelledError:
+            return "cancelled"
+        return "succeeded"
+    return _run_mesh_and_asset(
+        config, asset, parent_run, scene_dir, out, reporter, device, max_resolution
+    )
+
+
+def _run_mesh_and_asset(
+    config: dict[str, Any],
+    asset: dict[str, Any],
+    parent_run: Path,
+    scene_dir: Path,
+    out: Path,
+    reporter: _JobReporter,
+    device: str | None,
+    max_resolution: int,
+) -> str:
+    """The mesh, then the asset baked from it into ``out`` (see :func:`_run_mesh`)."""
+    from core.asset.export import (
+        ASSET_FILES,
+        AssetError,
+        AssetOptions,
+        asset_progress,
+        export_asset,
+    )
+    from core.meshing.mesh import MeshCancelledError, mesh_model, stage_progress
+    from core.model.run_folder import open_run
+
+    options = AssetOptions(**asset)  # the AssetCreate request the API validated
+    options.check()  # before the mesh: a bad option costs nothing
+    chain = _StageChain(reporter.on_event)
+    model, scene = open_run(parent_run, scene_dir, device=device)
+    views = scene.train
     try:
-        mesh_run(
-            parent_run,
+        mesh, _ = mesh_model(
+            model,
+            views,
             out,
-            scene_dir,
-            device=device,
             max_resolution=max_resolution,
-            **config,  # the MeshCreate request the API validated: mesh_model's parameters
-            on_event=reporter.on_event,
+            **config,
+            progress=stage_progress(chain.first, len(views)),
             should_stop=reporter.should_stop,
         )
     except MeshCancelledError:
         return "cancelled"
+    try:
+        export_asset(
+            model,
+            views,
+            out,
+            mesh,
+            options=options,
+            progress=asset_progress(chain.second),
+            should_stop=reporter.should_stop,
+        )
+    except Exception as exc:
+        for name in ASSET_FILES:  # a half-written asset is no asset; the mesh stays
+            (out / name).unlink(missing_ok=True)
+        if reporter.should_stop():  # export_asset reports a stop as an AssetError
+            return "cancelled"
+        if isinstance(exc, AssetError):
+            raise AssetError(
+                f"the mesh is made (its files are this job's artifacts), the asset is not: {exc}"
+            ) from exc
+        raise
     return "succeeded"
+
+
+class _StageChain:
+    """The stage events of a mesh job that also bakes an asset, as one progress.
+
+    ``mesh_model`` and ``export_asset`` each count their own steps from zero: passed
+    through as they are, the job's progress would reach 100 % at the mesh's end and then
+    fall back. Here the mesh fills the first half of the job's count and the asset the
+    second (its steps rescaled), so the progress only grows.
+    """
+
+    def __init__(self, on_event: Callable[[dict[str, Any]], None]) -> None:
+        self.on_event = on_event
+        self.span = 1  # the mesh's overall_total: the size of each half
+
+    def first(self, event: dict[str, Any]) -> None:
+        if event.get("overall_total"):
+            self.span = int(event["overall_total"])
+            event = {**event, "overall_total": 2 * self.span}
+        self.on_event(event)
+
+    def second(self, event: dict[str, Any]) -> None:
+        if event.get("overall_total"):
+            done = int(event.get("overall_done", 0)) * self.span // int(event["overall_total"])
+            event = {**event, "overall_done": self.span + done, "overall_total": 2 * self.span}
+        self.on_event(event)
 
 
 # what a mesh job needs of its parent's run folder (not its renders, meshes, reports)

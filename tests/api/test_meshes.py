@@ -129,6 +129,109 @@ def test_reextraction_with_radiance_colour_and_listing(server: LiveServer, train
         assert kinds == {"mesh"}
 
 
+ASSET_TYPES = {
+    "asset.glb": "model/gltf-binary",
+    "asset.json": "application/json",
+    "asset_env.hdr": "image/vnd.radiance",
+    "asset_env.exr": "image/x-exr",
+    "asset_preview.png": "image/png",
+}
+
+
+def test_a_mesh_job_with_an_asset_lists_its_files(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    """The asset is baked from the mesh this job made (its simplification, not the
+    parent's mesh), its files are the job's artifacts with their content types, and the
+    job's progress ends at 1 in the asset stage."""
+    key, job_id = trained
+    body = {
+        "resolution": 32,
+        "simplify": 1500,
+        "asset": {"faces": 1000, "texture_size": 64, "views": 2},
+    }
+    with server.client(key) as c:
+        r = c.post(f"/v1/jobs/{job_id}/meshes", json=body)
+        assert r.status_code == 201, r.text
+        assert r.json()["config"]["asset"] == {**body["asset"], "occlusion": True}
+        done = _finished(c, r.json()["id"])
+        assert done["state"] == "succeeded", done["error"]
+        assert done["progress"] == 1.0 and done["phase"] == "asset"
+        arts = {a["name"]: a for a in list_all(c, f"/v1/jobs/{done['id']}/artifacts")}
+        assert {"mesh.ply", "mesh.glb", "mesh.json"} <= set(arts)
+        for name, ctype in ASSET_TYPES.items():  # the glossy sphere's plan has an env map
+            assert arts[name]["content_type"] == ctype, name
+        glb = c.get(arts["asset.glb"]["url"])
+        assert glb.headers["content-type"] == "model/gltf-binary"
+        assert glb.content[:4] == b"glTF" and len(glb.content) == arts["asset.glb"]["size"]
+        assert c.get(arts["asset_env.hdr"]["url"]).content.startswith(b"#?")
+        info = c.get(arts["asset.json"]["url"]).json()
+        mesh_info = c.get(arts["mesh.json"]["url"]).json()
+        assert info["mesh"]["source_faces"] == mesh_info["faces"] <= 1600
+        assert info["textures"]["size"] == 64 and info["environment"]["present"] is True
+
+
+def test_mesh_and_asset_progress_only_grows() -> None:
+    """The mesh fills the first half of a mesh+asset job's count, the asset the second."""
+    from api.service.runner import _StageChain
+
+    seen: list[tuple[int, int]] = []
+    chain = _StageChain(lambda e: seen.append((e["overall_done"], e["overall_total"])))
+    for done in range(0, 11):
+        chain.first({"type": "stage", "name": "mesh", "overall_done": done, "overall_total": 10})
+    for done in range(0, 7):
+        chain.second({"type": "stage", "name": "asset", "overall_done": done, "overall_total": 6})
+    assert {total for _, total in seen} == {20}
+    dones = [d for d, _ in seen]
+    assert dones == sorted(dones) and dones[0] == 0 and dones[-1] == 20
+
+
+def test_a_failed_asset_keeps_the_mesh_and_says_why(
+    server: LiveServer, trained, monkeypatch
+) -> None:  # type: ignore[no-untyped-def]
+    import core.asset.export as export_mod
+    from core.errors import AssetError
+
+    def failing(model, views, out, mesh, **kw):  # type: ignore[no-untyped-def]
+        (out / "asset.glb").write_bytes(b"glTF half")  # a half-written file is removed
+        raise AssetError("could not simplify the mesh from 10 to about 1000 faces")
+
+    monkeypatch.setattr(export_mod, "export_asset", failing)
+    key, job_id = trained
+    with server.client(key) as c:
+        r = c.post(f"/v1/jobs/{job_id}/meshes", json={"resolution": 32, "asset": {}})
+        done = _finished(c, r.json()["id"])
+        assert done["state"] == "failed"
+        assert "the asset is not: could not simplify the mesh" in done["error"], done["error"]
+        names = {a["name"] for a in list_all(c, f"/v1/jobs/{done['id']}/artifacts")}
+        assert {"mesh.ply", "mesh.glb", "mesh.json"} <= names  # nothing lost
+        assert not any(n.startswith("asset") for n in names)
+
+
+def test_a_running_asset_bake_stops_on_cancel(server: LiveServer, trained, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    import time
+
+    import core.asset.export as export_mod
+
+    key, job_id = trained
+    baking = []
+    real = export_mod.bake_views
+
+    def slow_bake(*a, **kw):  # type: ignore[no-untyped-def]
+        baking.append(1)
+        time.sleep(1.0)
+        return real(*a, **kw)
+
+    monkeypatch.setattr(export_mod, "bake_views", slow_bake)
+    body = {"resolution": 32, "asset": {"faces": 1000, "texture_size": 64, "views": 2}}
+    with server.client(key) as c:
+        mesh_job = c.post(f"/v1/jobs/{job_id}/meshes", json=body).json()
+        wait_for(lambda: baking, timeout=60)
+        assert c.post(f"/v1/jobs/{mesh_job['id']}/cancel").status_code == 200
+        done = _finished(c, mesh_job["id"])
+        assert done["state"] == "cancelled", done
+        names = {a["name"] for a in list_all(c, f"/v1/jobs/{mesh_job['id']}/artifacts")}
+        assert "mesh.ply" in names and not any(n.startswith("asset") for n in names)
+
+
 def test_another_owner_sees_nothing(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
     _, job_id = trained
     with server.client(server.new_key("intruder")) as c:
@@ -147,6 +250,15 @@ def test_another_owner_sees_nothing(server: LiveServer, trained) -> None:  # typ
         ({"keep_fraction": 2}, "body.keep_fraction"),
         ({"simplify": 1}, "body.simplify"),
         ({"levels": 3}, "body.levels"),
+        ({"asset": {"texture_size": 100}}, "body.asset.texture_size"),
+        ({"asset": {"texture_size": 8192}}, "body.asset.texture_size"),
+        ({"asset": {"faces": 999}}, "body.asset.faces"),
+        ({"asset": {"faces": 2_000_001}}, "body.asset.faces"),
+        ({"asset": {"views": 0}}, "body.asset.views"),
+        ({"asset": {"views": 257}}, "body.asset.views"),
+        ({"asset": {"occlusion": "maybe"}}, "body.asset.occlusion"),
+        ({"asset": {"glossy": True}}, "body.asset.glossy"),
+        ({"asset": 1}, "body.asset"),
     ],
 )
 def test_bad_mesh_requests_name_the_field(server: LiveServer, trained, body, field) -> None:  # type: ignore[no-untyped-def]
@@ -158,6 +270,29 @@ def test_bad_mesh_requests_name_the_field(server: LiveServer, trained, body, fie
         assert r.headers["content-type"].startswith("application/problem+json")
         assert field in [e["field"] for e in r.json()["errors"]]
         assert c.get(f"/v1/jobs/{job_id}/meshes").json()["total"] == before  # nothing queued
+
+
+def test_asset_texture_size_must_be_a_power_of_two(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
+    """The 422 says what is expected, not only that the value is wrong."""
+    key, job_id = trained
+    with server.client(key) as c:
+        r = c.post(f"/v1/jobs/{job_id}/meshes", json={"asset": {"texture_size": 1000}})
+        assert r.status_code == 422, r.text
+        (err,) = r.json()["errors"]
+        assert err["field"] == "body.asset.texture_size"
+        assert "power of two" in err["message"] and "1024" in err["message"], err
+
+
+def test_the_asset_field_is_documented(server: LiveServer) -> None:
+    with server.client(None) as c:
+        doc = c.get("/openapi.json").json()
+    mesh = doc["components"]["schemas"]["MeshCreate"]["properties"]["asset"]
+    assert "asset.glb" in mesh["description"]
+    asset = doc["components"]["schemas"]["AssetCreate"]
+    assert set(asset["properties"]) == {"faces", "texture_size", "views", "occlusion"}
+    assert asset["properties"]["faces"]["minimum"] == 1000
+    assert asset["properties"]["texture_size"]["maximum"] == 4096
+    assert "power of two" in asset["properties"]["texture_size"]["description"]
 
 
 def test_meshing_an_unfinished_job_is_a_conflict(server: LiveServer, scene) -> None:  # type: ignore[no-untyped-def]
