@@ -1,6 +1,9 @@
 """HTTP and WebSocket routes of the viewer; the API mounts them (see ``mount``).
 
 - ``GET /viewer/{job_id}``: the page (static HTML/JS/CSS under ``/viewer/static``).
+- ``GET /viewer/{job_id}/mesh``: the mesh view, the job's relightable asset (asset.glb
+  lit by asset_env.hdr) drawn in the browser with three.js (vendored under
+  ``/viewer/static/vendor/three``); it reads the files through the artifacts API.
 - ``WS /v1/jobs/{job_id}/viewer/ws?token=…``: the frame stream (docs/viewer.md).
 - ``GET /v1/jobs/{job_id}/viewer/envmap.png?token=…``: the env map, lat-long PNG.
 - ``GET /app``: the dashboard (static HTML/JS/CSS under ``/app/static``), which talks to
@@ -58,6 +61,13 @@ def _service(app: FastAPI) -> ViewerService:
 def viewer_page(job_id: JobId) -> FileResponse:
     """The viewer page; it reads the job id from its own URL and the key from the fragment."""
     return FileResponse(STATIC / "index.html", headers={"Cache-Control": "no-cache"})
+
+
+@page_router.get("/viewer/{job_id}/mesh")
+def mesh_page(job_id: JobId) -> FileResponse:
+    """The mesh view; like the viewer it reads the job id from its URL, the key from the
+    fragment, and renders in the browser (no frames from the server)."""
+    return FileResponse(STATIC / "mesh.html", headers={"Cache-Control": "no-cache"})
 
 
 @page_router.get("/app")

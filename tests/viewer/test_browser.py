@@ -124,7 +124,7 @@ def test_mesh_panel_lists_extracts_and_downloads(page, trained_job: TrainedJob) 
     page.select_option("#mesh-color", "radiance")
     page.click("#mesh-start")
     others = f"#meshes li[data-state='succeeded']:not([data-job='{trained_job.job_id}'])"
-    done = page.locator(others)
+    done = page.locator(others).filter(has_text="64³ radiance")  # not another test's mesh job
     done.first.wait_for(timeout=90_000)
     assert "64³ radiance" in done.first.inner_text()
     with page.expect_download(timeout=30_000) as dl:

@@ -420,7 +420,7 @@
     });
     return a;
   }
-  function meshItem(id, label, meta, done) {
+  function meshItem(id, label, meta, done, asset) {
     const li = document.createElement("li");
     li.dataset.job = id; li.dataset.state = meta.state;
     const head = document.createElement("div");
@@ -430,6 +430,12 @@
       const links = document.createElement("div");
       links.className = "links";
       for (const f of MESH_FILES) links.appendChild(downloadLink(id, f));
+      if (asset) { // the relightable asset, drawn in the browser (mesh.html)
+        const a = document.createElement("a");
+        a.href = `/viewer/${encodeURIComponent(id)}/mesh`; a.textContent = "asset view";
+        a.dataset.asset = id; a.title = "asset.glb lit by its environment (three.js)";
+        links.appendChild(a);
+      }
       li.appendChild(links);
     }
     return li;
@@ -443,7 +449,8 @@
       const list = await (await api(`/v1/jobs/${encodeURIComponent(jobId)}/meshes?limit=20`)).json();
       box.replaceChildren();
       if (own.some((a) => a.name === "mesh.ply")) {
-        box.appendChild(meshItem(jobId, "from training", { state: "succeeded", text: "done" }, true));
+        const asset = own.some((a) => a.name === "asset.glb");
+        box.appendChild(meshItem(jobId, "from training", { state: "succeeded", text: "done" }, true, asset));
       }
       let active = false;
       for (const m of list.items) {
@@ -451,7 +458,8 @@
         const pct = Math.round((m.progress || 0) * 100);
         const text = m.state === "running" ? `${m.stage ? m.stage.step : "starting"} ${pct} %` : m.state;
         active = active || m.state === "queued" || m.state === "running";
-        box.appendChild(meshItem(m.id, `${c.resolution || 256}³ ${c.color || "base"}`, { state: m.state, text }, m.state === "succeeded"));
+        const label = `${c.resolution || 256}³ ${c.color || "base"}${c.asset ? " + asset" : ""}`;
+        box.appendChild(meshItem(m.id, label, { state: m.state, text }, m.state === "succeeded", !!c.asset));
       }
       if (!box.children.length) $("mesh-note").textContent = "No mesh yet.";
       else if ($("mesh-note").textContent === "No mesh yet.") $("mesh-note").textContent = "";
@@ -464,7 +472,10 @@
       await api(`/v1/jobs/${encodeURIComponent(jobId)}/meshes`, {
         method: "POST",
         headers: { "Content-Type": "application/json" },
-        body: JSON.stringify({ resolution: Number($("mesh-res").value), color: $("mesh-color").value }),
+        body: JSON.stringify({
+          resolution: Number($("mesh-res").value), color: $("mesh-color").value,
+          ...($("mesh-asset").checked ? { asset: {} } : {}),
+        }),
       });
       refreshMeshes();
     } catch (e) { $("mesh-note").textContent = `Cannot extract: ${e.message}`; }
