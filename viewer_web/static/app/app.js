@@ -799,14 +799,17 @@ function sceneView(id) {
 
 const PHASES = [
   ["sfm", "Cameras (SfM)"], ["rgb", "RGB"], ["geometry", "+ single view & env map"],
-  ["multiview", "+ multi-view"], ["mesh", "Mesh"],
+  ["multiview", "+ multi-view"], ["mesh", "Mesh"], ["asset", "Asset"],
 ];
 
 function stagesOf(job) {
-  const want = PHASES.filter(([k]) => (k === "sfm" ? !!job.sfm : k === "mesh" ? job.kind === "mesh" || (job.config.outputs || {}).mesh !== false : job.kind !== "mesh"));
+  const outputs = job.config.outputs || {};
+  const asset = job.kind === "mesh" ? !!job.config.asset : !!outputs.asset; // a relightable asset after the mesh
+  const want = PHASES.filter(([k]) => (k === "sfm" ? !!job.sfm : k === "mesh" ? job.kind === "mesh" || outputs.mesh !== false
+    : k === "asset" ? asset : job.kind !== "mesh"));
   const st = job.stage;
-  let cur = job.kind === "mesh" ? "mesh" : job.phase;
-  if (st && st.name && job.state === "running") cur = st.name === "sfm" ? "sfm" : st.name === "mesh" ? "mesh" : cur;
+  let cur = job.kind === "mesh" ? (job.phase === "asset" ? "asset" : "mesh") : job.phase;
+  if (st && st.name && job.state === "running") cur = ["sfm", "mesh", "asset"].includes(st.name) ? st.name : cur;
   let idx = want.findIndex(([k]) => k === cur);
   if (job.state === "succeeded") idx = want.length;
   if (job.state === "queued" && idx < 0) idx = -1;
@@ -837,6 +840,8 @@ function jobView(id) {
   const statePill = h("span", { class: "pill", id: "job-state", "aria-live": "polite" });
   const meta = h("p", { class: "muted meta" });
   const viewer = h("a", { class: "button", id: "open-viewer", target: "_blank", rel: "noopener" }, "Open live viewer ↗");
+  const meshView = h("a", { class: "button", id: "open-mesh-view", target: "_blank", rel: "noopener", hidden: true,
+    title: "the relightable asset (asset.glb) lit by its environment, in the browser" }, "Asset view ↗");
   const cancelBtn = h("button", { type: "button", id: "job-cancel" }, "Cancel");
   const resumeBtn = h("button", { type: "button", id: "job-resume" }, "Resume");
   const deleteBtn = h("button", { type: "button", class: "danger", id: "job-delete" }, "Delete job");
@@ -859,8 +864,10 @@ function jobView(id) {
   const meshRes = h("select", { id: "mesh-res" }, [64, 128, 256, 384, 512].map((r) => h("option", { value: r, selected: r === 256 }, `${r}³`)));
   const meshColor = h("select", { id: "mesh-color" }, h("option", { value: "base" }, "base colour"), h("option", { value: "radiance" }, "radiance"));
   const meshStart = h("button", { type: "submit", id: "mesh-start" }, "Extract mesh");
+  const meshAsset = h("input", { type: "checkbox", id: "mesh-asset" });
   const meshForm = h("form", { class: "row wrap", id: "mesh-form" },
-    h("label", null, "Grid ", meshRes), h("label", null, "Colour ", meshColor), meshStart);
+    h("label", null, "Grid ", meshRes), h("label", null, "Colour ", meshColor),
+    h("label", { title: "also bake a relightable asset (glTF + environment HDR) from the mesh" }, meshAsset, " + asset"), meshStart);
   const meshError = h("div", { class: "problem", role: "alert", hidden: true });
   const meshList = h("ul", { class: "meshes", id: "meshes" });
   const meshSec = h("section", { class: "card mesh-card" }, h("h2", null, "Mesh"), preview, previewNote,
@@ -877,7 +884,7 @@ function jobView(id) {
 
   el.append(
     h("header", { class: "viewhead" }, h("div", { class: "titles" }, title, statePill),
-      h("div", { class: "actions" }, viewer, cancelBtn, resumeBtn, deleteBtn)),
+      h("div", { class: "actions" }, viewer, meshView, cancelBtn, resumeBtn, deleteBtn)),
     meta,
     h("div", { class: "progressline" }, progress, progText, timeText),
     stages, errBox,
@@ -987,6 +994,8 @@ function jobView(id) {
       artBody.replaceChildren(...arts.map((a) => h("tr", { dataset: { name: a.name } },
         h("td", null, a.name), h("td", { class: "num" }, fmtBytes(a.size)), h("td", null, downloadButton(id, a)))));
       meshArtifacts.set(id, arts);
+      meshView.hidden = !arts.some((a) => a.name === "asset.glb");
+      meshView.href = `/viewer/${enc(id)}/mesh#key=${enc(auth.key)}`;
       await showPreview(id, arts.find((a) => a.name === "mesh_preview.png"));
     } catch (e) {
       showError(e, "Cannot list the artifacts");
@@ -1013,7 +1022,7 @@ function jobView(id) {
         const st = m.stage;
         const text = m.state === "running" ? `${st ? st.step : "starting"} ${Math.round((m.progress || 0) * 100)} %` : m.state;
         const li = h("li", { dataset: { job: m.id, state: m.state } },
-          h("div", { class: "line" }, h("span", null, `${c.resolution || 256}³ ${c.color || "base"}`),
+          h("div", { class: "line" }, h("span", null, `${c.resolution || 256}³ ${c.color || "base"}${c.asset ? " + asset" : ""}`),
             pill(h("span"), m.state, text)));
         const links = h("div", { class: "row wrap" });
         if (m.state === "succeeded") {
@@ -1021,6 +1030,10 @@ function jobView(id) {
           for (const name of ["mesh.glb", "mesh.ply", "mesh.obj"]) {
             const a = arts.find((x) => x.name === name);
             if (a) links.append(downloadButton(m.id, a, `${name.slice(5).toUpperCase()} ${fmtBytes(a.size)}`));
+          }
+          if (arts.some((x) => x.name === "asset.glb")) {
+            links.append(h("a", { class: "button small", target: "_blank", rel: "noopener", dataset: { asset: m.id },
+              href: `/viewer/${enc(m.id)}/mesh#key=${enc(auth.key)}` }, "Asset view ↗"));
           }
           const pv = arts.find((x) => x.name === "mesh_preview.png");
           if (pv) {
@@ -1050,7 +1063,8 @@ function jobView(id) {
     problemBox(meshError, null);
     meshStart.disabled = true;
     try {
-      await getJson(`/v1/jobs/${enc(id)}/meshes`, { method: "POST", json: { resolution: Number(meshRes.value), color: meshColor.value } });
+      const body = { resolution: Number(meshRes.value), color: meshColor.value, ...(meshAsset.checked ? { asset: {} } : {}) };
+      await getJson(`/v1/jobs/${enc(id)}/meshes`, { method: "POST", json: body });
       announce("Mesh extraction queued");
       loadMeshes();
     } catch (err) {
