@@ -14,6 +14,7 @@ from importlib.metadata import entry_points
 from pathlib import Path
 
 from core import __version__
+from core.asset.command import register as register_export
 from core.errors import GlintError
 
 Handler = Callable[[argparse.Namespace], int]
@@ -591,6 +592,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     _register_core(sub)
     _register_eval(sub)
+    register_export(sub)
     for ep in entry_points(group="glint.commands"):
         try:
             register = ep.load()

@@ -219,6 +219,24 @@ class Outputs(_Strict):
     mesh_resolution: int = Field(
         256, ge=16, le=2048, description="voxels along the longest side of the surface's box"
     )
+    asset: bool = Field(
+        False,
+        description="also export a relightable asset (asset.glb with baked PBR textures, "
+        "asset_env.exr/.hdr; docs/asset.md); it is made from the mesh, so the run meshes",
+    )
+    asset_faces: int = Field(
+        100_000, ge=100, le=5_000_000, description="face budget of the asset's mesh"
+    )
+    asset_texture_size: int = Field(
+        1024, ge=16, le=8192, description="asset texture size, a power of two"
+    )
+
+    @field_validator("asset_texture_size")
+    @classmethod
+    def _power_of_two(cls, value: int) -> int:
+        if value & (value - 1):
+            raise ValueError(f"{value} is not a power of two (e.g. 512, 1024, 2048)")
+        return value
 
 
 class TrainConfig(_Strict):

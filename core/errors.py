@@ -9,6 +9,10 @@ class GlintError(Exception):
     """Base class of every error Glint raises on purpose."""
 
 
+class AssetError(GlintError, ValueError):
+    """A relightable asset cannot be made from this input; the message says why."""
+
+
 class SceneError(GlintError):
     """A scene on disk is malformed: missing files, bad poses, unreadable images.
 

@@ -6,7 +6,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
-for s in scripts/services.sh scripts/browser.sh; do
+for s in scripts/services.sh scripts/browser.sh scripts/gltf_validator.sh; do
     if [ -f "$s" ]; then bash "$s"; fi
 done
 . .venv/bin/activate

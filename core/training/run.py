@@ -95,8 +95,9 @@ def export_trained(
     geo = geometry_errors(model, scene.test or scene.train, scene.root)
     sections = []
     mesh_info = None
-    if trainer.plan.mesh.value:
-        _, mesh_info = mesh_model(
+    mesh = None
+    if trainer.plan.mesh.value or cfg.outputs.asset:  # the asset is made from the mesh
+        mesh, mesh_info = mesh_model(
             model,
             scene.train,
             trainer.out,
@@ -106,8 +107,54 @@ def export_trained(
             should_stop=should_stop,
         )
         sections.append(mesh_section(mesh_info))
+    asset = None
+    if cfg.outputs.asset and mesh is not None:
+        asset = export_run_asset(trainer, mesh, on_event, should_stop)
+        sections.append(asset_section(asset))
     views = trainer.progress_views()[:RENDERED_VIEWS]
     summary = export_run(model, trainer.out, views, geometry=geo, sections=sections)
     if mesh_info is not None:
         summary["mesh"] = {k: mesh_info[k] for k in ("vertices", "faces", "color", "files")}
+    if asset is not None:
+        summary["asset"] = asset
     return summary
+
+
+def export_run_asset(
+    trainer: Trainer,
+    mesh: Any,
+    on_event: Callable[[dict[str, Any]], None] | None,
+    should_stop: Callable[[], bool] | None,
+) -> dict[str, Any]:
+    """The run's relightable asset (outputs.asset) into its folder; an input the asset
+    cannot be made from is reported in the summary, not a failed run."""
+    from core.asset.export import AssetOptions, asset_progress, export_asset
+    from core.errors import AssetError
+
+    out = trainer.cfg.outputs
+    options = AssetOptions(faces=out.asset_faces, texture_size=out.asset_texture_size)
+    try:
+        info = export_asset(
+            trainer.model,
+            trainer.scene.train,
+            trainer.out,
+            mesh,
+            options=options,
+            progress=asset_progress(on_event),
+            should_stop=should_stop,
+        )
+    except MeshCancelledError:
+        raise
+    except AssetError as exc:
+        return {"error": str(exc)}
+    return {"files": sorted(info["files"].values()), "faces": info["mesh"]["faces"]}
+
+
+def asset_section(asset: dict[str, Any]) -> str:
+    if "error" in asset:
+        return f"## Relightable asset\n\nNot made: {asset['error']}."
+    files = ", ".join(f"`{f}`" for f in asset["files"])
+    return (
+        f"## Relightable asset\n\n{asset['faces']} faces, with PBR textures and the "
+        f"environment (docs/asset.md): {files}, and `asset.json`."
+    )

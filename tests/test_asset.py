@@ -1,0 +1,260 @@
+"""Relightable assets (glint export --asset): material mapping, irradiance, atlas
+texels and tangent frames, the .glb (trimesh and Khronos' glTF-Validator read it), the
+training option, the diffuse fallback, bad input and cancellation."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from core.asset.export import (
+    ASSET_FILES,
+    AssetCancelledError,
+    AssetError,
+    AssetOptions,
+    asset_run,
+    export_asset,
+)
+from core.asset.glb import GLTF_FROM_WORLD
+from core.asset.material import gltf_material, irradiance, irradiance_sh, solve_metallic
+from core.asset.texels import fill_unknown, rasterize_atlas
+from core.asset.uv_mesh import face_frames, unwrap
+from core.config import config_from_dict
+from core.errors import GlintError
+from core.model.run_folder import open_run
+from core.render.envmap import texel_directions
+from core.training.run import train_scene
+
+ROOT = Path(__file__).resolve().parents[1]
+VALIDATOR = ROOT / ".tools" / "gltf-validator"
+LUMA = np.array([0.2126, 0.7152, 0.0722])
+SMALL = {"faces": 1500, "texture_size": 64, "views": 4}
+
+
+# ---------------------------------------------------------------- material mapping
+
+
+def test_metallic_round_trip() -> None:
+    """A glTF material (c, m) rendered under a uniform white map gives Eq. 9's base
+    (1 − m)·c and w_r = 0.04(1 − m) + m·lum(c); the solve recovers c and m."""
+    rng = np.random.default_rng(0)
+    c = rng.uniform(0.05, 0.95, (500, 3))
+    m = rng.uniform(0.0, 0.95, 500)
+    base = (1 - m)[:, None] * c
+    w_r = 0.04 * (1 - m) + m * (c @ LUMA)
+    env_sh = irradiance_sh(torch.ones(6, 8, 8, 3))
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    color, metal = gltf_material(base, w_r, normals, None, env_sh)
+    np.testing.assert_allclose(metal, m, atol=2e-3)
+    np.testing.assert_allclose(color, c, atol=5e-3)
+
+
+def test_metallic_limits() -> None:
+    # no reflection beyond a dielectric's: metallic 0, and w_r < 0.04 is not negative
+    assert np.all(solve_metallic(np.full((3, 3), 0.3), np.array([0.0, 0.02, 0.04])) == 0.0)
+    # a black base with a strong reflection is a grey metal of that reflectance
+    color, metal = gltf_material(
+        np.zeros((1, 3)), np.array([0.7]), np.array([[0.0, 0.0, 1.0]]), None,
+        irradiance_sh(torch.ones(6, 4, 4, 3)),
+    )  # fmt: skip
+    assert metal[0] == 1.0
+    np.testing.assert_allclose(color[0], [0.7, 0.7, 0.7], atol=1e-6)
+
+
+def test_diffuse_plan_keeps_the_base_as_colour() -> None:
+    base = np.array([[0.2, 0.5, 0.9], [1.5, 0.1, 0.0]])
+    color, metal = gltf_material(base, np.array([0.5, 0.5]), np.eye(3)[:2], None, None)
+    np.testing.assert_allclose(color, np.clip(base, 0, 1))
+    assert np.all(metal == 0)
+
+
+def test_occlusion_divides_the_base() -> None:
+    """Under the same light, a texel with AO 0.5 needs twice the albedo for the same base."""
+    sh = irradiance_sh(torch.ones(6, 4, 4, 3))
+    base = np.full((2, 3), 0.2)
+    color, _ = gltf_material(base, np.zeros(2), np.eye(3)[:2], np.array([1.0, 0.5]), sh)
+    np.testing.assert_allclose(color[1], 2 * color[0], rtol=1e-6)
+
+
+def test_irradiance_of_uniform_and_half_sky() -> None:
+    """Uniform radiance L: Irr = L at every normal. Sky (z > 0) of radiance 1: Irr(+z) =
+    1, Irr(−z) = 0, Irr(horizontal) = 1/2 (to the l ≤ 2 truncation's ~6%)."""
+    L = torch.tensor([0.3, 0.5, 2.0])
+    sh = irradiance_sh(L.expand(6, 16, 16, 3).clone())
+    n = np.array([[0, 0, 1.0], [1.0, 0, 0], [0, -0.6, 0.8]])
+    np.testing.assert_allclose(irradiance(sh, n), np.tile(L.numpy(), (3, 1)), rtol=1e-3)
+    dirs = texel_directions(32, torch.float64, "cpu")
+    sky = (dirs[..., 2] > 0).to(torch.float32)[..., None].expand(-1, -1, -1, 3)
+    sh = irradiance_sh(sky.contiguous())
+    got = irradiance(sh, np.array([[0, 0, 1.0], [0, 0, -1.0], [1.0, 0, 0]]))[:, 0]
+    np.testing.assert_allclose(got, [1.0, 0.0, 0.5], atol=0.07)
+
+
+# ---------------------------------------------------------------- atlas and frames
+
+
+@pytest.fixture(scope="module")
+def sphere_atlas():  # type: ignore[no-untyped-def]
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    uvm = unwrap(mesh, 128)
+    return uvm, rasterize_atlas(uvm, 128)
+
+
+def test_atlas_texels_lie_on_the_surface(sphere_atlas) -> None:  # type: ignore[no-untyped-def]
+    uvm, tex = sphere_atlas
+    assert np.all(uvm.uvs >= 0) and np.all(uvm.uvs <= 1)
+    assert tex.count > 0.3 * 128 * 128  # xatlas packs densely
+    r = np.linalg.norm(tex.points, axis=1)
+    assert np.all(r <= 1 + 1e-5) and np.all(r > 0.97)  # on the flat facets of a unit sphere
+    # interpolated normals of a sphere point outwards along the position
+    cos = np.sum(tex.normals * tex.points / r[:, None], 1)
+    assert np.all(cos > 0.99)
+    # every texel is claimed once, and the texel's face contains its point
+    assert len(set(zip(tex.rows.tolist(), tex.cols.tolist(), strict=True))) == tex.count
+
+
+def test_tangent_frame_follows_the_uv_directions(sphere_atlas) -> None:  # type: ignore[no-untyped-def]
+    """The tangent points along +u and the bitangent along −v (up in the image), as
+    glTF's normal textures expect; both are unit and orthogonal to the normal."""
+    uvm, tex = sphere_atlas
+    dpdu, dpdup = face_frames(uvm.positions, uvm.uvs, uvm.faces)
+    du = dpdu[tex.face] / np.linalg.norm(dpdu[tex.face], axis=1, keepdims=True)
+    dv = dpdup[tex.face] / np.linalg.norm(dpdup[tex.face], axis=1, keepdims=True)
+    assert np.mean(np.sum(tex.tangents * du, 1) > 0.7) > 0.98
+    assert np.mean(np.sum(tex.bitangents * dv, 1) > 0.7) > 0.98
+    np.testing.assert_allclose(np.linalg.norm(tex.tangents, axis=1), 1, atol=1e-4)
+    assert np.abs(np.sum(tex.tangents * tex.normals, 1)).max() < 1e-4
+    # a reversed tangent (mirrored chart) would show up as w = -1 where dP/du flips
+    assert set(np.unique(uvm.tangents[:, 3])) <= {-1.0, 1.0}
+
+
+def test_fill_unknown_spreads_into_gutters() -> None:
+    img = np.zeros((8, 8, 1), dtype=np.float32)
+    known = np.zeros((8, 8), dtype=bool)
+    img[3:5, 3:5] = 0.8
+    known[3:5, 3:5] = True
+    out = fill_unknown(img, known, iterations=2)
+    assert np.all(out[3:5, 3:5] == 0.8)
+    assert out[1, 1, 0] == pytest.approx(0.8) and out[0, 0, 0] == pytest.approx(0.8)
+
+
+# ---------------------------------------------------------------- a trained run
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny glossy run trained with outputs.asset on (the training path)."""
+    from core.scene.synthetic import write_synthetic_scene
+
+    root = tmp_path_factory.mktemp("asset")
+    scene = write_synthetic_scene(root / "scene", "sphere", "glossy", n_train=8, n_test=1, size=32)
+    cfg = config_from_dict(
+        {"iterations": 40, "init_points": 800, "envmap_resolution": 8,
+         "densify": {"enabled": False},
+         "outputs": {"mesh": False, "mesh_resolution": 48, "asset": True, "asset_faces": 1500,
+                     "asset_texture_size": 64}}
+    )  # fmt: skip
+    _, summary = train_scene(scene, root / "run", cfg)
+    assert summary is not None and "files" in summary["asset"], summary
+    return root / "run"
+
+
+def test_training_writes_the_asset(run: Path) -> None:
+    for name in ASSET_FILES:
+        assert (run / name).is_file(), name
+    info = json.loads((run / "asset.json").read_text())
+    assert info["mesh"]["faces"] <= 1500 * 1.05
+    assert info["textures"]["size"] == 64 and info["environment"]["present"]
+    assert "Relightable asset" in (run / "report.md").read_text()
+
+
+def test_glb_loads_with_material_uvs_and_y_up(run: Path) -> None:
+    scene = trimesh.load(run / "asset.glb", process=False)
+    mesh = next(iter(scene.geometry.values()))
+    assert mesh.visual.uv is not None and len(mesh.visual.uv) == len(mesh.vertices)
+    mat = mesh.visual.material
+    assert isinstance(mat, trimesh.visual.material.PBRMaterial)
+    assert mat.baseColorTexture is not None and mat.metallicRoughnessTexture is not None
+    assert mat.normalTexture is not None and mat.baseColorTexture.size == (64, 64)
+    # the file is +Y up: turned back, it is the run's mesh (same box)
+    world = np.asarray(mesh.vertices) @ GLTF_FROM_WORLD  # R orthonormal: R^T · p_gltf
+    ref = trimesh.load(run / "mesh.ply", process=False)
+    np.testing.assert_allclose(world.min(0), ref.vertices.min(0), atol=0.05)
+    np.testing.assert_allclose(world.max(0), ref.vertices.max(0), atol=0.05)
+
+
+def test_khronos_validator_reports_no_issues(run: Path) -> None:
+    if not (VALIDATOR / "node_modules" / "gltf-validator").is_dir():
+        pytest.fail(
+            f"Khronos glTF-Validator missing: run bash scripts/gltf_validator.sh ({VALIDATOR})"
+        )
+    out = subprocess.run(
+        ["node", str(VALIDATOR / "validate.mjs"), str(run / "asset.glb")],
+        capture_output=True, text=True, timeout=120, check=True,
+    )  # fmt: skip
+    report = json.loads(out.stdout)
+    assert report["numErrors"] == 0 and report["numWarnings"] == 0, report["messages"][:5]
+
+
+def test_asset_run_into_another_folder(run: Path, tmp_path: Path) -> None:
+    events: list[dict] = []
+    info = asset_run(run, tmp_path / "a", on_event=events.append, occlusion=False, **SMALL)
+    assert {p.name for p in (tmp_path / "a").iterdir()} >= {"asset.glb", "asset_env.hdr"}
+    assert info["textures"]["occlusion"].startswith("off")
+    steps = [e["step"] for e in events if e.get("name") == "asset"]
+    assert steps[0] == "simplify" and steps[-1] == "write"
+    assert all(e["overall_done"] <= e["overall_total"] for e in events)
+
+
+def test_diffuse_model_has_no_environment(run: Path, tmp_path: Path) -> None:
+    model, scene = open_run(run)
+    model.envmap = None  # what a diffuse plan leaves
+    mesh = trimesh.load(run / "mesh.ply", process=False)
+    info = export_asset(model, scene.train, tmp_path, mesh, options=AssetOptions(**SMALL))
+    assert not info["environment"]["present"] and "diffuse" in info["environment"]["reason"]
+    assert not (tmp_path / "asset_env.hdr").exists() and (tmp_path / "asset.glb").is_file()
+    assert info["material"]["mean_metallic"] == 0.0
+
+
+@pytest.mark.parametrize(
+    ("options", "field"),
+    [({"texture_size": 100}, "texture_size"), ({"faces": 10}, "faces"),
+     ({"views": 0}, "views"), ({"colour": 1}, "colour")],
+)  # fmt: skip
+def test_bad_options_are_named(run: Path, tmp_path: Path, options: dict, field: str) -> None:
+    with pytest.raises(AssetError, match=field):
+        asset_run(run, tmp_path, **options)
+    assert not any(tmp_path.iterdir())  # nothing written
+
+
+def test_empty_mesh_and_missing_run(run: Path, tmp_path: Path) -> None:
+    model, scene = open_run(run)
+    with pytest.raises(AssetError, match="no faces"):
+        export_asset(model, scene.train, tmp_path, trimesh.Trimesh(), options=AssetOptions(**SMALL))
+    with pytest.raises(GlintError, match="checkpoint"):
+        asset_run(tmp_path / "nothing", tmp_path / "out")
+
+
+def test_cancel_stops_without_a_glb(run: Path, tmp_path: Path) -> None:
+    model, scene = open_run(run)
+    mesh = trimesh.load(run / "mesh.ply", process=False)
+    with pytest.raises(AssetCancelledError):
+        export_asset(model, scene.train, tmp_path, mesh, options=AssetOptions(**SMALL),
+                     should_stop=lambda: True)  # fmt: skip
+    assert not (tmp_path / "asset.glb").exists()
+
+
+def test_cli_export(run: Path, tmp_path: Path) -> None:
+    from core.cli import main
+
+    code = main(["export", str(run), "--asset", str(tmp_path), "--faces", "1500",
+                 "--texture-size", "64", "--views", "2", "--quiet"])  # fmt: skip
+    assert code == 0 and (tmp_path / "asset.glb").is_file()
+    assert main(["export", str(run), "--asset", str(tmp_path), "--faces", "20"]) == 2
