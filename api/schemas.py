@@ -6,6 +6,7 @@ from datetime import datetime
 from typing import Any, Generic, Literal, TypeVar
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic_core import PydanticCustomError
 
 from api.problems import Problem
 from api.service.webhook_guard import MAX_URL_LENGTH, split_url
@@ -319,9 +320,12 @@ class AssetCreate(BaseModel):
     @field_validator("texture_size")
     @classmethod
     def _power_of_two(cls, size: int) -> int:
-        if size not in ASSET_TEXTURE_SIZES:
-            sizes = ", ".join(str(s) for s in ASSET_TEXTURE_SIZES)
-            raise ValueError(f"texture_size must be a power of two: one of {sizes}; got {size}")
+        if size not in ASSET_TEXTURE_SIZES:  # the message as is, no "Value error, " prefix
+            raise PydanticCustomError(
+                "power_of_two",
+                "texture_size must be a power of two: one of {sizes}; got {size}",
+                {"sizes": ", ".join(str(s) for s in ASSET_TEXTURE_SIZES), "size": size},
+            )
         return size
 
 
