@@ -29,6 +29,7 @@ from core.config import config_from_dict
 from core.errors import GlintError
 from core.model.run_folder import open_run
 from core.render.envmap import texel_directions
+from core.scene.imageio import linear_to_srgb, srgb_to_linear
 from core.training.run import train_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -258,3 +259,85 @@ def test_cli_export(run: Path, tmp_path: Path) -> None:
                  "--texture-size", "64", "--views", "2", "--quiet"])  # fmt: skip
     assert code == 0 and (tmp_path / "asset.glb").is_file()
     assert main(["export", str(run), "--asset", str(tmp_path), "--faces", "20"]) == 2
+
+
+def test_normal_map_round_trips_through_the_file(tmp_path: Path) -> None:
+    """Normals encoded in the texels' tangent frames, written to the .glb and decoded the
+    way a glTF viewer does (the file's tangents and handedness, turned back to the
+    world) come back: the writer's frames and the file's agree."""
+    from core.asset.export import _tangent_space
+    from core.asset.glb import GlbMesh, GlbTextures, write_glb
+    from core.asset.reference_render import _bilinear, read_glb
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    uvm = unwrap(mesh, 256)
+    tex = rasterize_atlas(uvm, 256)
+    # a smooth tilt of the surface normal (what a bumpier model surface would give)
+    tilt = np.stack(
+        [np.sin(3 * tex.points[:, 2]), np.cos(2 * tex.points[:, 0]), np.zeros(tex.count)], 1
+    )
+    want = tex.normals + 0.4 * tilt
+    want /= np.linalg.norm(want, axis=1, keepdims=True)
+    ts = _tangent_space(tex, want)
+    known = tex.mask()
+    img = fill_unknown(tex.to_image(ts * 0.5 + 0.5), known, 8)
+    png = __import__("core.asset.export", fromlist=["_png"])._png
+    flat = np.ones((4, 4, 3)) * 0.5
+    write_glb(
+        tmp_path / "n.glb",
+        GlbMesh(uvm.positions, uvm.normals, uvm.tangents, uvm.uvs, uvm.faces),
+        GlbTextures(png(flat, True), png(flat, False), png(img, False)),
+    )
+    asset = read_glb(tmp_path / "n.glb")
+    rot = GLTF_FROM_WORLD
+    f = asset.faces[tex.face]
+    pos = tex.points @ rot.T  # the texel's point in the file's frame
+    tri = asset.positions[f]
+    bary = trimesh.triangles.points_to_barycentric(tri, pos)
+    interp = lambda a: np.einsum("nk,nkc->nc", bary, a[f])  # noqa: E731
+    n = interp(asset.normals)
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    t = interp(asset.tangents[:, :3])
+    t = t - n * np.sum(t * n, 1, keepdims=True)
+    t /= np.linalg.norm(t, axis=1, keepdims=True)
+    b = np.cross(n, t) * np.where(asset.tangents[f[:, 0], 3] < 0, -1.0, 1.0)[:, None]
+    enc = _bilinear(asset.normal_map, interp(asset.uvs)) * 2 - 1
+    got = (enc[:, :1] * t + enc[:, 1:2] * b + enc[:, 2:3] * n) @ rot
+    got /= np.linalg.norm(got, axis=1, keepdims=True)
+    angle = np.degrees(np.arccos(np.clip(np.sum(got * want, 1), -1, 1)))
+    assert np.median(angle) < 1.5 and np.mean(angle < 5) > 0.95  # 8-bit, bilinear at seams
+    # a viewer reading green the other way (DirectX convention) would be far off
+    b_wrong = -b
+    bad = (enc[:, :1] * t + enc[:, 1:2] * b_wrong + enc[:, 2:3] * n) @ rot
+    bad /= np.linalg.norm(bad, axis=1, keepdims=True)
+    assert np.median(np.degrees(np.arccos(np.clip(np.sum(bad * want, 1), -1, 1)))) > 5
+
+
+@pytest.mark.parametrize(("metal", "expect"), [(1.0, "c*L"), (0.0, "c*L+0.04*L")])
+def test_reference_render_of_a_constant_sphere(tmp_path: Path, metal: float, expect: str) -> None:
+    """Under a uniform map of radiance L, a sphere of constant c and metallic 1 shows
+    c·L (F0 = c), one with metallic 0 shows c·L (diffuse, Irr = L) + 0.04·L."""
+    from core.asset.export import _png
+    from core.asset.glb import GlbMesh, GlbTextures, write_glb
+    from core.asset.reference_render import read_glb, render_asset
+    from core.scene.synthetic import fibonacci_cameras
+
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    uvm = unwrap(mesh, 64)
+    c = np.array([0.6, 0.4, 0.2])
+    base = np.ones((8, 8, 3)) * c
+    orm = np.ones((8, 8, 3)) * np.array([1.0, 0.0, metal])
+    flat = np.ones((8, 8, 3)) * np.array([0.5, 0.5, 1.0])
+    write_glb(
+        tmp_path / "s.glb",
+        GlbMesh(uvm.positions, uvm.normals, uvm.tangents, uvm.uvs, uvm.faces),
+        GlbTextures(_png(base, True), _png(orm, False), _png(flat, False), has_occlusion=True),
+    )
+    L = torch.tensor([1.0, 2.0, 0.5])
+    cam = fibonacci_cameras(3, distance=4.0, size=32)[1]
+    img, hit = render_asset(read_glb(tmp_path / "s.glb"), L.expand(6, 4, 4, 3), cam, np.ones(3))
+    c8 = np.asarray(srgb_to_linear(np.round(np.asarray(linear_to_srgb(c)) * 255) / 255))
+    want = c8 * L.numpy() + (0.0 if metal else 0.04 * L.numpy())
+    assert hit.mean() > 0.05
+    np.testing.assert_allclose(img[hit], np.broadcast_to(want, img[hit].shape), rtol=2e-2)
+    assert np.all(img[~hit] == 1.0)
