@@ -54,13 +54,27 @@ def _check_mesh(mesh: trimesh.Trimesh, *, normals: bool) -> None:
         assert "vertex_normals" in mesh._cache or len(mesh.vertex_normals) == len(mesh.vertices)
 
 
+TRAIN_ASSET = {"asset": True, "asset_faces": 1000, "asset_texture_size": 64}
+ASSET_TYPES = {
+    "asset.glb": "model/gltf-binary",
+    "asset.json": "application/json",
+    "asset_env.hdr": "image/vnd.radiance",
+    "asset_env.exr": "image/x-exr",
+    "asset_preview.png": "image/png",
+}
+
+
 @pytest.fixture(scope="module")
 def trained(server: LiveServer, scene, tmp_path_factory) -> tuple[str, str]:  # type: ignore[no-untyped-def]
-    """(key, job id) of one finished tiny job with the default outputs (mesh on)."""
+    """(key, job id) of one finished tiny job with the default outputs (mesh on) and a
+    tiny relightable asset (outputs.asset: the training job's config carries it)."""
     key = server.new_key("mesh-owner")
+    outputs = {**TINY_CONFIG["outputs"], **TRAIN_ASSET}
     with server.client(key) as c:
         sid = _ready_scene(c, scene)
-        r = c.post("/v1/jobs", json={"scene_id": sid, "config": TINY_CONFIG})
+        r = c.post(
+            "/v1/jobs", json={"scene_id": sid, "config": {**TINY_CONFIG, "outputs": outputs}}
+        )
         assert r.status_code == 201, r.text
         job = _finished(c, r.json()["id"])
         assert job["state"] == "succeeded", job["error"]
@@ -72,7 +86,7 @@ def test_a_training_job_ends_with_a_coloured_mesh(server: LiveServer, trained) -
     with server.client(key) as c:
         job = c.get(f"/v1/jobs/{job_id}").json()
         assert job["kind"] == "train" and job["plan"]["decisions"]["mesh"]["value"] is True
-        assert job["stage"]["name"] == "mesh"
+        assert job["stage"]["name"] == "asset"  # the last step after training: mesh, asset
         arts = {a["name"]: a for a in list_all(c, f"/v1/jobs/{job_id}/artifacts")}
         for name, ctype in (
             ("mesh.ply", "application/x-ply"),
@@ -91,6 +105,12 @@ def test_a_training_job_ends_with_a_coloured_mesh(server: LiveServer, trained) -
         report = c.get(f"/v1/jobs/{job_id}/artifacts/report.md").text
         assert "## Mesh" in report and "mesh_preview.png" in report
         assert not any(n.endswith(".tmp") or "staging" in n for n in arts)
+        # outputs.asset: the asset files after the mesh, with their content types
+        assert job["config"]["outputs"]["asset"] is True
+        for name, ctype in ASSET_TYPES.items():
+            assert arts[name]["content_type"] == ctype, name
+        info = json.loads(c.get(f"/v1/jobs/{job_id}/artifacts/asset.json").content)
+        assert info["textures"]["size"] == 64 and info["mesh"]["faces"] <= 1050
 
 
 def test_mesh_outputs_can_be_switched_off(server: LiveServer, scene) -> None:  # type: ignore[no-untyped-def]
@@ -127,15 +147,6 @@ def test_reextraction_with_radiance_colour_and_listing(server: LiveServer, train
         # only mesh jobs when asked
         kinds = {j["kind"] for j in c.get("/v1/jobs", params={"kind": "mesh"}).json()["items"]}
         assert kinds == {"mesh"}
-
-
-ASSET_TYPES = {
-    "asset.glb": "model/gltf-binary",
-    "asset.json": "application/json",
-    "asset_env.hdr": "image/vnd.radiance",
-    "asset_env.exr": "image/x-exr",
-    "asset_preview.png": "image/png",
-}
 
 
 def test_a_mesh_job_with_an_asset_lists_its_files(server: LiveServer, trained) -> None:  # type: ignore[no-untyped-def]
