@@ -56,7 +56,10 @@ INDIRECT = ("fast-simplification", "httptools", "watchfiles")  # trimesh.simplif
 # imported where present, with a stated fallback where not (LPIPS: "unavailable"; SfM:
 # a clear error, it runs on the CPU before training and pycolmap's wheel alone is
 # 36 MiB; obstore: only bench/store_io.py compares it, skipped when absent)
-OPTIONAL_MODULES = frozenset({"lpips", "pycolmap", "obstore"})
+# Not carried either: the relightable asset's UV atlas (xatlas, imported only when an
+# asset is exported, which the kit does not do) and Blender's modules (bpy, mathutils:
+# bench/blender_render.py runs in its own venv, scripts/blender_venv.sh).
+OPTIONAL_MODULES = frozenset({"lpips", "pycolmap", "obstore", "xatlas", "bpy", "mathutils"})
 # provided with the CUDA torch, never carried
 TORCH_SIDE = re.compile(r"^(torch|triton|nvidia-.*|cuda-.*)$")
 # the target: CPython 3.12 on x86-64 Linux

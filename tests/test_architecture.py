@@ -35,6 +35,7 @@ CORE_LAYERS: tuple[tuple[str, ...], ...] = (
     ("core.model",),
     ("core.meshing",),
     ("core.outputs",),
+    ("core.asset",),
     ("core.evaluation",),
     ("core.training",),
     ("core.benchmark",),
