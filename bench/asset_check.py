@@ -1,9 +1,10 @@
 """Asset bench: export a run's relightable asset and check that it renders like the run.
 
-For each run: ``glint export`` at the given options (time per step, file sizes), then on
-the held-out views the asset read back from its .glb and shaded as glTF prescribes
-(core.asset.reference_render: no Fresnel, Glint's env lookup) against the photos and
-against Glint's own renders, with and without the normal map; a picture per run
+For each run: ``glint export`` at the given options into RUN/asset (reused when made
+with the same options; time per step, file sizes), then on the held-out views the asset
+read back from its .glb and shaded as glTF prescribes (core.asset.reference_render: no
+Fresnel, Glint's env lookup) against the photos and against Glint's own renders, with
+and without the normal map; a picture per run
 (photo | Glint | asset | asset without normal map)::
 
     .venv/bin/python -m bench.asset_check --run runs/teapot [--run ...] \
@@ -33,12 +34,27 @@ from core.model.run_folder import open_run
 from core.scene.imageio import write_image
 
 
+def existing_asset(asset_dir: Path, options: dict[str, Any], iteration: int) -> dict | None:
+    """asset.json of an asset made with these options from this iteration, else None."""
+    try:
+        info = json.loads((asset_dir / "asset.json").read_text())
+    except (OSError, ValueError):
+        return None
+    same = all(info["options"].get(k) == v for k, v in options.items())
+    return info if same and info.get("iteration") == iteration else None
+
+
 def check_run(run: Path, out: Path, options: dict[str, Any], views: int | None) -> dict[str, Any]:
-    asset_dir = out / run.name / "asset"
-    t0 = time.perf_counter()
-    info = asset_run(run, asset_dir, **options)
-    seconds = time.perf_counter() - t0
+    """Export (or reuse RUN/asset made with the same options) and score one run."""
+    asset_dir = run / "asset"
     model, scene = open_run(run)
+    info = existing_asset(asset_dir, options, model.iteration)
+    if info is None:
+        t0 = time.perf_counter()
+        info = asset_run(run, asset_dir, **options)
+        seconds = time.perf_counter() - t0
+    else:
+        seconds = sum(info["seconds"].values())
     asset = read_glb(asset_dir / "asset.glb")
     env = None if model.envmap is None else model.envmap.texels()
     bg = model.background.cpu()

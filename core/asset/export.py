@@ -57,11 +57,12 @@ STEPS = ("simplify", "unwrap", "bake", "occlusion", "material", "write")
 Progress = Callable[[str, int, int], None]
 
 MAPPING_NOTE = (
-    "base colour c and metallic m solve, per texel, (1-m)·c·Irr(n)·AO = Eq. 9's base and "
-    "0.04·(1-m) + m·lum(c) = w_r, with Irr the learned map's diffuse irradiance; roughness "
-    "is Glint's ρ (glTF perceptual roughness, GGX α = ρ²). Lost: w_r's lack of colour and "
-    "of Fresnel (glTF rims are brighter), w_r below 0.04, base brighter than the light "
-    "explains (clipped), inter-reflections (baked into Glint's base)."
+    "per texel, base colour c and metallic m are the least-squares fit of "
+    "|(1-m)·c·I - base|² + |(0.04·(1-m) + m·c - w_r)·I|², I = Irr(n)·AO the learned map's "
+    "diffuse irradiance times occlusion (fit_rms_relative: what it missed); roughness is "
+    "Glint's ρ (glTF perceptual roughness, GGX α = ρ²). The reflection's colour stays in "
+    "the learned map. Lost: a mostly-mirror texel's base colour, Fresnel (glTF rims are "
+    "brighter), base brighter than the light explains (clipped), inter-reflections."
 )
 
 
@@ -189,7 +190,9 @@ def export_asset(
             occlusion_note = "skipped: embreex is not installed"
     step("occlusion")
     env_sh = None if model.envmap is None else irradiance_sh(model.envmap.texels())
-    color, metallic = gltf_material(baked.base, baked.w_r, baked.normal, occlusion, env_sh)
+    color, metallic, residual = gltf_material(
+        baked.base, baked.w_r, baked.normal, occlusion, env_sh
+    )
     known = texels.mask()
     seen_img = texels.to_image(baked.seen.astype(np.float32))[..., 0] > 0
     gutter = 2 * 8  # enough passes to cover the atlas padding and small unseen islands
@@ -269,6 +272,7 @@ def export_asset(
             if has_roughness(model.gaussians)
             else "none learned: 0 (the env map was read as a mirror)",
             "mean_metallic": float(metallic[seen].mean()) if seen.any() else 0.0,
+            "fit_rms_relative": float(np.sqrt(residual[seen].mean())) if seen.any() else 0.0,
             "mean_roughness": float(baked.roughness[seen].mean()) if seen.any() else 0.0,
         },
         "environment": env,

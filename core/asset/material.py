@@ -1,25 +1,31 @@
 """Eq. 9's material as glTF 2.0 metallic-roughness, under the learned environment.
 
 Glint renders C = base + w_r · E_ρ(r): ``base`` is outgoing radiance that does not
-depend on the light (the lighting at training time is baked into it), w_r a scalar
-reflection weight and E_ρ the env map prefiltered for roughness ρ. A glTF renderer lit
-by the same map E gives, for base colour c, metallic m and roughness ρ (split sum, at
-normal incidence, Fresnel F0 = lerp(0.04, c, m)):
+depend on the light (the lighting at training time is baked into it), w_r a colourless
+reflection weight and E_ρ the learned env map prefiltered for roughness ρ. A glTF
+renderer lit by the exported map E gives, for base colour c, metallic m and roughness ρ
+(split sum, at normal incidence):
 
-    C ≈ (1 − m) · c · Irr(n) · AO  +  lerp(0.04, c, m) · E_ρ(r)
+    C ≈ (1 − m) · c · I  +  F0 · E_ρ(r),   F0 = 0.04 (1 − m) + m · c,   I = Irr(n) · AO
 
-with Irr(n) = (1/π)∫ E(ω) max(0, n·ω) dω the diffuse irradiance and AO the ambient
-occlusion (Cycles traces it; rasterisers read the occlusion map). Matching the two per
-texel: the diffuse part must give ``base`` → a = base / (Irr · AO) = (1 − m) · c, and
-the specular weight must give w_r → 0.04 (1 − m) + m · lum(c) = w_r. Solved for m
-(bisection; monotone), then c = a / (1 − m). ρ is glTF's perceptual roughness as is
-(Glint's α = ρ², like glTF's GGX).
+with Irr(n) = (1/π)∫E(ω)max(0, n·ω)dω the diffuse irradiance and AO the ambient
+occlusion. glTF ties the diffuse colour and the reflection's colour to one c; Eq. 9 does
+not (and for a coloured metal the learned map carries the metal's tint: the map is only
+ever seen through the object). So per texel (c, m) is the least-squares fit of both
+terms, each in units of the light that reaches the texel:
 
-What is lost: Glint's w_r is colourless and has no Fresnel (glTF's reflectance rises
-towards 1 at grazing angles, so rims come out brighter); a w_r below 0.04 becomes 0.04;
-a base brighter than the light can explain (a > 1) is clipped; with m = 1 the specular
-tint comes from the base's hue; inter-reflections, which Cycles adds, Glint baked into
-``base``.
+    min  |(1 − m) c I − base|² + |(F0 − w_r) I|²    over c ∈ [0, 1]³, m ∈ [0, 1]
+
+For fixed m the optimum in c is closed-form per channel; m is searched on a grid and
+refined. A grey c (any dielectric with a colourless reflection, a grey metal) is
+matched exactly; a coloured base with a strong reflection trades the two, and the fit
+says how much it missed. ρ is glTF's perceptual roughness as is (Glint's α = ρ², like
+glTF's GGX).
+
+What is lost: the base's colour where the texel is mostly mirror (its F0 must stay
+near grey w_r), Fresnel (glTF's reflectance rises towards 1 at grazing angles, so rims
+come out brighter), a base brighter than the light can explain (c > 1 is clipped),
+inter-reflections that Cycles adds (Glint baked them into ``base``).
 """
 
 from __future__ import annotations
@@ -33,7 +39,6 @@ from core.render.envmap import texel_directions
 
 DIELECTRIC_F0 = 0.04
 MIN_OCCLUSION = 0.1  # the base colour divides by AO: keep the division bounded
-_LUMA = np.array([0.2126, 0.7152, 0.0722], dtype=np.float64)
 
 
 def _sh9(d: np.ndarray) -> np.ndarray:
@@ -60,7 +65,8 @@ def texel_solid_angles(resolution: int) -> np.ndarray:
     r = resolution
     c = (np.arange(r) + 0.5) / r * 2 - 1
     s, t = np.meshgrid(c, c, indexing="xy")
-    da = (2.0 / r) ** 2 / (1 + s * s + t * t) ** 1.5
+    da = (2.0 / r) ** 2 / (1 + s * s + t * t) ** 1.5  # at the texel centre
+    da *= 4 * math.pi / (6 * da.sum())  # exact total: a uniform map's irradiance is exact
     return np.broadcast_to(da, (6, r, r)).copy()
 
 
@@ -85,31 +91,59 @@ def irradiance(sh: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.maximum(_sh9(normals.astype(np.float64)) @ sh, 1e-4)
 
 
-def solve_metallic(albedo: np.ndarray, w_r: np.ndarray, steps: int = 40) -> np.ndarray:
-    """Metallic m per texel with 0.04 (1 − m) + m · lum(clip(a / (1 − m))) = w_r.
+def _best_color(a: np.ndarray, w: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """argmin_c |(1 − m)c − a|² + |0.04(1 − m) + m c − w|² per channel, clipped to
+    [0, 1] (a = base / I; the objective is separable and convex in each channel)."""
+    one = 1.0 - m
+    num = one * a + m * (w - DIELECTRIC_F0 * one)
+    den = one * one + m * m
+    return np.clip(num / den, 0.0, 1.0)
 
-    ``albedo`` a (N, 3) is the diffuse part (1 − m) · c the base requires. The left side
-    grows with m from 0.04 (m = 0) to lum(clip(a / 0)) (m → 1), so bisection finds the
-    root; w_r ≤ 0.04 gives m = 0 and a w_r the left side cannot reach gives m = 1.
-    """
+
+def _fit_error(a: np.ndarray, w: np.ndarray, m: np.ndarray, c: np.ndarray) -> np.ndarray:
+    one = 1.0 - m
+    return np.sum((one * c - a) ** 2 + (DIELECTRIC_F0 * one + m * c - w) ** 2, -1)
+
+
+def fit_metallic_roughness(
+    albedo: np.ndarray, w_r: np.ndarray, grid: int = 41, chunk: int = 65536
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(c (N, 3), m (N,), residual (N,)) minimising the fit above for a = base / I (N, 3)
+    and w_r (N,): m on a ``grid``-point search, then a local refinement (ternary steps
+    within one grid cell). The residual is in units of the light (relative error)."""
     a = np.maximum(albedo.astype(np.float64), 0.0)
-    s = np.clip(w_r.astype(np.float64), 0.0, 1.0)
-
-    def f0(m: np.ndarray) -> np.ndarray:
-        c = np.clip(a / np.maximum(1.0 - m, 1e-9)[:, None], 0.0, 1.0)
-        return DIELECTRIC_F0 * (1 - m) + m * (c @ _LUMA)
-
-    lo = np.zeros_like(s)
-    hi = np.ones_like(s)
-    for _ in range(steps):
-        mid = 0.5 * (lo + hi)
-        below = f0(mid) < s
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    m = 0.5 * (lo + hi)
-    m = np.where(f0(np.full_like(s, 1.0 - 1e-9)) < s, 1.0, m)  # no diffuse part can reach it
-    m = np.where(s <= DIELECTRIC_F0, 0.0, m)
-    return np.clip(m, 0.0, 1.0)
+    w = np.clip(w_r.astype(np.float64), 0.0, 1.0)
+    n = len(a)
+    out_c = np.empty((n, 3))
+    out_m = np.empty(n)
+    out_e = np.empty(n)
+    ms = np.linspace(0.0, 1.0, grid)
+    step = 1.0 / (grid - 1)
+    for s0 in range(0, n, chunk):
+        sl = slice(s0, min(n, s0 + chunk))
+        aa, ww = a[sl][:, None, :], w[sl][:, None, None]
+        mm = ms[None, :, None]
+        err = _fit_error(aa, ww, mm, _best_color(aa, ww, mm))
+        m0 = ms[np.argmin(err, 1)]
+        lo, hi = np.maximum(m0 - step, 0.0), np.minimum(m0 + step, 1.0)
+        a2, w2 = a[sl], w[sl][:, None]
+        for _ in range(24):  # ternary search: the objective is unimodal near its grid minimum
+            m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+            e1 = _fit_error(a2, w2, m1[:, None], _best_color(a2, w2, m1[:, None]))
+            e2 = _fit_error(a2, w2, m2[:, None], _best_color(a2, w2, m2[:, None]))
+            hi = np.where(e1 <= e2, m2, hi)
+            lo = np.where(e1 <= e2, lo, m1)
+        m = 0.5 * (lo + hi)
+        c = _best_color(a2, w2, m[:, None])
+        e = _fit_error(a2, w2, m[:, None], c)
+        # the grid point itself when the refinement did not beat it (edges of [0, 1])
+        cg = _best_color(a2, w2, m0[:, None])
+        eg = _fit_error(a2, w2, m0[:, None], cg)
+        better = eg < e
+        out_m[sl] = np.where(better, m0, m)
+        out_c[sl] = np.where(better[:, None], cg, c)
+        out_e[sl] = np.minimum(eg, e)
+    return out_c, out_m, out_e
 
 
 def gltf_material(
@@ -118,22 +152,14 @@ def gltf_material(
     normals: np.ndarray,
     occlusion: np.ndarray | None,
     env_sh: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray]:
-    """(base colour (N, 3) linear in [0, 1], metallic (N,)) for Eq. 9's base and w_r.
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(base colour (N, 3) linear in [0, 1], metallic (N,), relative residual (N,)) for
+    Eq. 9's base and w_r seen under the light I = Irr(n) · AO.
 
     Without an env map (a diffuse plan) there is no light to divide by: the base is
     the colour and the surface a dielectric (metallic 0)."""
     if env_sh is None:
-        return np.clip(base, 0.0, 1.0), np.zeros(len(base))
+        return np.clip(base, 0.0, 1.0), np.zeros(len(base)), np.zeros(len(base))
     irr = irradiance(env_sh, normals)
     ao = np.ones(len(base)) if occlusion is None else np.maximum(occlusion, MIN_OCCLUSION)
-    albedo = base / (irr * ao[:, None])
-    m = solve_metallic(albedo, w_r)
-    color = np.clip(albedo / np.maximum(1.0 - m, 1e-9)[:, None], 0.0, 1.0)
-    # m = 1: the diffuse part vanishes and c is the specular tint: the base's hue at w_r
-    lum = albedo @ _LUMA
-    hue = np.where(lum[:, None] > 1e-6, albedo / np.maximum(lum, 1e-6)[:, None], 1.0)
-    tint = np.clip(hue * w_r[:, None], 0.0, 1.0)
-    full = m >= 1.0 - 1e-6
-    color = np.where(full[:, None], tint, color)
-    return color, m
+    return fit_metallic_roughness(base / (irr * ao[:, None]), w_r)
