@@ -47,22 +47,52 @@ SMALL = {"faces": 1500, "texture_size": 64, "views": 4}
 
 
 def test_grey_materials_round_trip() -> None:
-    """A glTF material with a grey c (any dielectric, a grey metal) rendered under a
-    uniform white map gives Eq. 9's base (1 − m)·c and w_r = 0.04(1 − m) + m·c; the fit
-    recovers c and m with no residual."""
+    """A glTF material with a grey c (any dielectric, a grey metal) under light I gives
+    Eq. 9's base (1 − m)·c·I and w_r = 0.04(1 − m) + m·c; the fit recovers c and m
+    with no residual."""
     rng = np.random.default_rng(0)
     g = rng.uniform(0.05, 0.95, 500)
     m = rng.uniform(0.0, 1.0, 500)
     c = np.repeat(g[:, None], 3, 1)
-    base = (1 - m)[:, None] * c
     w_r = 0.04 * (1 - m) + m * g
-    env_sh = irradiance_sh(torch.ones(6, 8, 8, 3))
-    normals = rng.normal(size=(500, 3))
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    color, metal, resid = gltf_material(base, w_r, normals, None, env_sh)
+    color, metal, resid = fit_metallic_roughness((1 - m)[:, None] * c, w_r)
     np.testing.assert_allclose(metal, m, atol=2e-3)
     np.testing.assert_allclose(color, c, atol=5e-3)
     assert resid.max() < 1e-6
+
+
+def test_exported_material_renders_like_eq9() -> None:
+    """Whatever exposure s the export picks, the glTF terms under the exported map s·E
+    give back Eq. 9's base and w_r · E for representable materials (head-on views)."""
+    rng = np.random.default_rng(2)
+    g = rng.uniform(0.05, 0.9, 300)
+    m = rng.uniform(0.0, 1.0, 300)
+    light = 1.7  # the true map: uniform radiance 1.7, so I = 1.7 everywhere
+    base = ((1 - m) * g)[:, None] * light * np.ones(3)
+    # the model learned the map 1/0.3 too bright, and w_r 0.3 times the reflectance
+    w_r = 0.3 * (0.04 * (1 - m) + m * g)
+    sh = irradiance_sh(torch.full((6, 8, 8, 3), light / 0.3))
+    up = np.tile([[0.0, 0.0, 1.0]], (300, 1))
+    c, mm, _, s = gltf_material(base, w_r, up, None, sh)
+    assert 0.1 < s < 1.0  # grey materials fit exactly over a range of exposures near 0.3
+    diffuse = (1 - mm)[:, None] * c * (light / 0.3) * s
+    f0 = 0.04 * (1 - mm)[:, None] + mm[:, None] * c
+    np.testing.assert_allclose(diffuse, base, atol=1e-3)
+    np.testing.assert_allclose(f0 * s, np.repeat(w_r[:, None], 3, 1), atol=1e-3)
+
+
+def test_mirror_reflectance_averaged_over_views_matches() -> None:
+    """A colourless mirror learned as w_r = 0.5, seen partly at grazing angles: under the
+    exported map s·E the glTF metal's reflectance averaged over the views,
+    s · (F0 (1 − κ) + κ), is the model's 0.5 at every texel (Fresnel included)."""
+    n = 400
+    kappa = np.random.default_rng(3).uniform(0.0, 0.3, n)
+    sh = irradiance_sh(torch.ones(6, 8, 8, 3))
+    up = np.tile([[0.0, 0.0, 1.0]], (n, 1))
+    c, m, _, s = gltf_material(np.zeros((n, 3)), np.full(n, 0.5), up, None, sh, kappa)
+    f0 = 0.04 * (1 - m)[:, None] + m[:, None] * c
+    np.testing.assert_allclose(s * (f0 * (1 - kappa[:, None]) + kappa[:, None]), 0.5, atol=2e-3)
+    assert np.all(m > 0.95)  # a metal: no diffuse part for a black base
 
 
 def test_fit_is_the_least_squares_optimum() -> None:
@@ -88,21 +118,20 @@ def test_fit_is_the_least_squares_optimum() -> None:
 
 
 def test_metallic_limits() -> None:
-    sh = irradiance_sh(torch.ones(6, 4, 4, 3))
-    up = np.array([[0.0, 0.0, 1.0]])
     # a coloured base with a dielectric's reflection: metallic 0, the base is the colour
-    color, metal, _ = gltf_material(np.array([[0.5, 0.2, 0.1]]), np.array([0.04]), up, None, sh)
-    assert metal[0] == pytest.approx(0.0, abs=1e-6)
-    np.testing.assert_allclose(color[0], [0.5, 0.2, 0.1], atol=1e-6)
+    c, m, _ = fit_metallic_roughness(np.array([[0.5, 0.2, 0.1]]), np.array([0.04]))
+    assert m[0] == pytest.approx(0.0, abs=1e-6)
+    np.testing.assert_allclose(c[0], [0.5, 0.2, 0.1], atol=1e-6)
     # a black base with a strong reflection is a grey metal of that reflectance
-    color, metal, _ = gltf_material(np.zeros((1, 3)), np.array([0.7]), up, None, sh)
-    assert metal[0] == pytest.approx(1.0, abs=1e-6)
-    np.testing.assert_allclose(color[0], [0.7, 0.7, 0.7], atol=1e-6)
+    c, m, _ = fit_metallic_roughness(np.zeros((1, 3)), np.array([0.7]))
+    assert m[0] == pytest.approx(1.0, abs=1e-6)
+    np.testing.assert_allclose(c[0], [0.7, 0.7, 0.7], atol=1e-6)
 
 
 def test_diffuse_plan_keeps_the_base_as_colour() -> None:
     base = np.array([[0.2, 0.5, 0.9], [1.5, 0.1, 0.0]])
-    color, metal, _ = gltf_material(base, np.array([0.5, 0.5]), np.eye(3)[:2], None, None)
+    color, metal, _, s = gltf_material(base, np.array([0.5, 0.5]), np.eye(3)[:2], None, None)
+    assert s == 1.0
     np.testing.assert_allclose(color, np.clip(base, 0, 1))
     assert np.all(metal == 0)
 
@@ -111,7 +140,7 @@ def test_occlusion_divides_the_base() -> None:
     """Under the same light, a texel with AO 0.5 needs twice the albedo for the same base."""
     sh = irradiance_sh(torch.ones(6, 4, 4, 3))
     base = np.full((2, 3), 0.2)
-    color, _, _ = gltf_material(base, np.full(2, 0.04), np.eye(3)[:2], np.array([1.0, 0.5]), sh)
+    color, _, _, _ = gltf_material(base, np.full(2, 0.04), np.eye(3)[:2], np.array([1, 0.5]), sh)
     np.testing.assert_allclose(color[1], 2 * color[0], rtol=1e-6)
 
 
@@ -372,3 +401,15 @@ def test_reference_render_of_a_constant_sphere(tmp_path: Path, metal: float, exp
     assert hit.mean() > 0.05
     np.testing.assert_allclose(img[hit], np.broadcast_to(want, img[hit].shape), rtol=2e-2)
     assert np.all(img[~hit] == 1.0)
+
+
+def test_fit_matches_the_reflectance_averaged_over_the_views() -> None:
+    """A grey metal seen at angles whose mean Schlick term is κ reflects on average
+    F0 (1 − κ) + κ; the fit gives back F0 from that average, not the average itself."""
+    f0 = np.array([0.3, 0.6, 0.9])
+    kappa = np.array([0.0, 0.1, 0.3])
+    w = f0 * (1 - kappa) + kappa
+    c, m, e = fit_metallic_roughness(np.zeros((3, 3)), w, kappa)
+    np.testing.assert_allclose(m, 1.0, atol=1e-6)
+    np.testing.assert_allclose(c[:, 0], f0, atol=1e-6)
+    assert e.max() < 1e-10

@@ -38,6 +38,7 @@ class BakedSurface:
     roughness: np.ndarray  # (M,)
     normal: np.ndarray  # (M, 3) unit world normal of the model (mesh normal if unseen)
     weight: np.ndarray  # (M,)
+    grazing: np.ndarray  # (M,) mean (1 − cos θ)⁵ over the views (Schlick's Fresnel term)
     views: int
 
     @property
@@ -67,7 +68,7 @@ def bake_views(
     pts = torch.from_numpy(texels.points).to(device, torch.float64)
     nrm = torch.from_numpy(texels.normals).to(device, torch.float64)
     m = texels.count
-    acc = torch.zeros(m, 8, dtype=torch.float64, device=device)  # base3, w_r, ρ, normal3
+    acc = torch.zeros(m, 9, dtype=torch.float64, device=device)  # base3 w_r ρ normal3 (1-cos)^5
     wsum = torch.zeros(m, dtype=torch.float64, device=device)
     radius = float(model.radius) if model.radius is not None else 1.0
     for i, view in enumerate(views):
@@ -112,7 +113,8 @@ def bake_views(
         seen = (near[:, 1] > 0.5) & ((near[:, 0] - z[idx]).abs() < tol)
         idx, lin = idx[seen], lin[seen]
         wt = cos[idx].square()
-        acc.index_add_(0, idx, lin * wt[:, None])
+        fres = (1.0 - cos[idx]).clamp(0, 1).pow(5)[:, None]
+        acc.index_add_(0, idx, torch.cat([lin, fres], 1) * wt[:, None])
         wsum.index_add_(0, idx, wt)
         if progress is not None:
             progress(i + 1, len(views))
@@ -129,6 +131,7 @@ def bake_views(
         roughness=mean[:, 4].clamp(0, 1).float().cpu().numpy(),
         normal=normal.float().cpu().numpy(),
         weight=wsum.float().cpu().numpy(),
+        grazing=mean[:, 8].clamp(0, 1).float().cpu().numpy(),
         views=len(views),
     )
 

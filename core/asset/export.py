@@ -58,11 +58,13 @@ Progress = Callable[[str, int, int], None]
 
 MAPPING_NOTE = (
     "per texel, base colour c and metallic m are the least-squares fit of "
-    "|(1-m)·c·I - base|² + |(0.04·(1-m) + m·c - w_r)·I|², I = Irr(n)·AO the learned map's "
-    "diffuse irradiance times occlusion (fit_rms_relative: what it missed); roughness is "
-    "Glint's ρ (glTF perceptual roughness, GGX α = ρ²). The reflection's colour stays in "
-    "the learned map. Lost: a mostly-mirror texel's base colour, Fresnel (glTF rims are "
-    "brighter), base brighter than the light explains (clipped), inter-reflections."
+    "|(1-m)·c·I - base|² + |(F - w_r/s)·I|², I = Irr(n)·AO the exported map's diffuse "
+    "irradiance times occlusion, F = F0·(1-κ)+κ glTF's Schlick reflectance averaged over "
+    "the baked views, F0 = 0.04·(1-m) + m·c (fit_rms_relative: what the fit missed); the "
+    "map is the learned one times the exposure s that fits best (environment.exposure); "
+    "roughness is Glint's ρ (glTF perceptual roughness, GGX α = ρ²). Lost: a mostly-mirror "
+    "texel's base colour, Fresnel at angles the capture did not see, base brighter than the "
+    "light explains (clipped), inter-reflections."
 )
 
 
@@ -190,8 +192,8 @@ def export_asset(
             occlusion_note = "skipped: embreex is not installed"
     step("occlusion")
     env_sh = None if model.envmap is None else irradiance_sh(model.envmap.texels())
-    color, metallic, residual = gltf_material(
-        baked.base, baked.w_r, baked.normal, occlusion, env_sh
+    color, metallic, residual, exposure = gltf_material(
+        baked.base, baked.w_r, baked.normal, occlusion, env_sh, baked.grazing
     )
     known = texels.mask()
     seen_img = texels.to_image(baked.seen.astype(np.float32))[..., 0] > 0
@@ -227,7 +229,7 @@ def export_asset(
     for stale in ("asset_env.exr", "asset_env.hdr"):
         (out / stale).unlink(missing_ok=True)
     if model.envmap is not None:
-        texels_env = model.envmap.texels().detach().float().cpu()
+        texels_env = model.envmap.texels().detach().float().cpu() * exposure
         for ext in ("exr", "hdr"):
             save_equirect(out / f"asset_env.{ext}", texels_env, int(opt.env_height))
             files[f"env_{ext}"] = f"asset_env.{ext}"
@@ -238,6 +240,9 @@ def export_asset(
             "convention": "equirectangular, linear radiance, +Z up (Blender world texture); "
             "for the Y-up glb three.js reads it with no rotation",
             "three_rotation_y": 0.0,
+            "exposure": exposure,
+            "exposure_note": "the learned map times this factor (Eq. 9 fixes only w_r · E; "
+            "this is the scale at which the glTF material reproduces the model best)",
             "blender": "World > Environment Texture with this file, default mapping, strength 1",
         }
     _preview([np.asarray(linear_to_srgb(base_img)), orm_img, normal_img], out / "asset_preview.png")

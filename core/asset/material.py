@@ -14,7 +14,12 @@ not (and for a coloured metal the learned map carries the metal's tint: the map 
 ever seen through the object). So per texel (c, m) is the least-squares fit of both
 terms, each in units of the light that reaches the texel:
 
-    min  |(1 − m) c I − base|² + |(F0 − w_r) I|²    over c ∈ [0, 1]³, m ∈ [0, 1]
+    min  |(1 − m) c I − base|² + |(F − w_r) I|²    over c ∈ [0, 1]³, m ∈ [0, 1]
+
+with F = F0 (1 − κ) + κ glTF's (Schlick) reflectance averaged over the views that saw
+the texel (κ their mean (1 − cos θ)⁵): w_r is one value for every angle, glTF's rises
+towards 1 at grazing ones. And since Eq. 9 fixes only w_r · E, the map is exported at
+the exposure s where this fit is best overall (:func:`gltf_material`).
 
 For fixed m the optimum in c is closed-form per channel; m is searched on a grid and
 refined. A grey c (any dielectric with a colourless reflection, a grey metal) is
@@ -91,28 +96,42 @@ def irradiance(sh: np.ndarray, normals: np.ndarray) -> np.ndarray:
     return np.maximum(_sh9(normals.astype(np.float64)) @ sh, 1e-4)
 
 
-def _best_color(a: np.ndarray, w: np.ndarray, m: np.ndarray) -> np.ndarray:
-    """argmin_c |(1 − m)c − a|² + |0.04(1 − m) + m c − w|² per channel, clipped to
-    [0, 1] (a = base / I; the objective is separable and convex in each channel)."""
-    one = 1.0 - m
-    num = one * a + m * (w - DIELECTRIC_F0 * one)
-    den = one * one + m * m
-    return np.clip(num / den, 0.0, 1.0)
+def _best_color(a: np.ndarray, w: np.ndarray, m: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """argmin_c |(1 − m)c − a|² + |F(c, m) − w|² per channel, clipped to [0, 1], with
+    F = F0 (1 − κ) + κ (a = base / I; separable and convex in each channel)."""
+    one, q = 1.0 - m, 1.0 - k
+    t = w - k - q * DIELECTRIC_F0 * one
+    num = one * a + q * m * t
+    den = one * one + q * q * m * m
+    return np.clip(num / np.maximum(den, 1e-12), 0.0, 1.0)
 
 
-def _fit_error(a: np.ndarray, w: np.ndarray, m: np.ndarray, c: np.ndarray) -> np.ndarray:
+def _fit_error(
+    a: np.ndarray, w: np.ndarray, m: np.ndarray, c: np.ndarray, k: np.ndarray
+) -> np.ndarray:
     one = 1.0 - m
-    return np.sum((one * c - a) ** 2 + (DIELECTRIC_F0 * one + m * c - w) ** 2, -1)
+    f = (DIELECTRIC_F0 * one + m * c) * (1.0 - k) + k
+    return np.sum((one * c - a) ** 2 + (f - w) ** 2, -1)
 
 
 def fit_metallic_roughness(
-    albedo: np.ndarray, w_r: np.ndarray, grid: int = 41, chunk: int = 65536
+    albedo: np.ndarray,
+    w_r: np.ndarray,
+    grazing: np.ndarray | None = None,
+    grid: int = 41,
+    chunk: int = 65536,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(c (N, 3), m (N,), residual (N,)) minimising the fit above for a = base / I (N, 3)
     and w_r (N,): m on a ``grid``-point search, then a local refinement (ternary steps
-    within one grid cell). The residual is in units of the light (relative error)."""
+    within one grid cell). The residual is in units of the light (relative error).
+
+    ``grazing`` κ (N,): the views' mean Schlick term (1 − cos θ)⁵. glTF's reflectance
+    at an angle is F0 + (1 − F0)(1 − cos θ)⁵ while w_r is one value for all angles, so
+    the fit matches w_r to the reflectance averaged over the views that saw the texel,
+    F0 (1 − κ) + κ (None: 0, seen head-on only)."""
     a = np.maximum(albedo.astype(np.float64), 0.0)
-    w = np.clip(w_r.astype(np.float64), 0.0, 1.0)
+    w = np.maximum(w_r.astype(np.float64), 0.0)
+    kap = np.zeros(len(a)) if grazing is None else np.clip(grazing.astype(np.float64), 0, 0.99)
     n = len(a)
     out_c = np.empty((n, 3))
     out_m = np.empty(n)
@@ -121,29 +140,33 @@ def fit_metallic_roughness(
     step = 1.0 / (grid - 1)
     for s0 in range(0, n, chunk):
         sl = slice(s0, min(n, s0 + chunk))
-        aa, ww = a[sl][:, None, :], w[sl][:, None, None]
+        aa, ww, kk = a[sl][:, None, :], w[sl][:, None, None], kap[sl][:, None, None]
         mm = ms[None, :, None]
-        err = _fit_error(aa, ww, mm, _best_color(aa, ww, mm))
+        err = _fit_error(aa, ww, mm, _best_color(aa, ww, mm, kk), kk)
         m0 = ms[np.argmin(err, 1)]
         lo, hi = np.maximum(m0 - step, 0.0), np.minimum(m0 + step, 1.0)
-        a2, w2 = a[sl], w[sl][:, None]
+        a2, w2, k2 = a[sl], w[sl][:, None], kap[sl][:, None]
         for _ in range(24):  # ternary search: the objective is unimodal near its grid minimum
             m1, m2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
-            e1 = _fit_error(a2, w2, m1[:, None], _best_color(a2, w2, m1[:, None]))
-            e2 = _fit_error(a2, w2, m2[:, None], _best_color(a2, w2, m2[:, None]))
+            e1 = _fit_error(a2, w2, m1[:, None], _best_color(a2, w2, m1[:, None], k2), k2)
+            e2 = _fit_error(a2, w2, m2[:, None], _best_color(a2, w2, m2[:, None], k2), k2)
             hi = np.where(e1 <= e2, m2, hi)
             lo = np.where(e1 <= e2, lo, m1)
         m = 0.5 * (lo + hi)
-        c = _best_color(a2, w2, m[:, None])
-        e = _fit_error(a2, w2, m[:, None], c)
+        c = _best_color(a2, w2, m[:, None], k2)
+        e = _fit_error(a2, w2, m[:, None], c, k2)
         # the grid point itself when the refinement did not beat it (edges of [0, 1])
-        cg = _best_color(a2, w2, m0[:, None])
-        eg = _fit_error(a2, w2, m0[:, None], cg)
+        cg = _best_color(a2, w2, m0[:, None], k2)
+        eg = _fit_error(a2, w2, m0[:, None], cg, k2)
         better = eg < e
         out_m[sl] = np.where(better, m0, m)
         out_c[sl] = np.where(better[:, None], cg, c)
         out_e[sl] = np.minimum(eg, e)
     return out_c, out_m, out_e
+
+
+ENV_SCALES = np.geomspace(1.0 / 64, 4.0, 33)  # candidate exposures of the exported map
+SCALE_SAMPLES = 20000  # texels the exposure is chosen on
 
 
 def gltf_material(
@@ -152,14 +175,45 @@ def gltf_material(
     normals: np.ndarray,
     occlusion: np.ndarray | None,
     env_sh: np.ndarray | None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(base colour (N, 3) linear in [0, 1], metallic (N,), relative residual (N,)) for
-    Eq. 9's base and w_r seen under the light I = Irr(n) · AO.
+    grazing: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """(base colour (N, 3) linear in [0, 1], metallic (N,), relative residual (N,),
+    exposure s of the exported map) for Eq. 9's base and w_r under I = Irr(n) · AO.
 
-    Without an env map (a diffuse plan) there is no light to divide by: the base is
-    the colour and the surface a dielectric (metallic 0)."""
+    Eq. 9 only fixes the product w_r · E: the map's scale is free (w_r / s with s · E
+    renders the same) and so is, with it, how much light the base colour answers to.
+    glTF's model is not invariant (c ≤ 1, F0 ≤ 1, Fresnel), so the exported map is E · s
+    with s the exposure at which the fitted material reproduces the model's radiance
+    best: the sum over texels of the absolute error s² I² · residual(s), on a subsample.
+    Without an env map (a diffuse plan) there is no light to divide by: the base is the
+    colour and the surface a dielectric (metallic 0), s = 1."""
+    n = len(base)
     if env_sh is None:
-        return np.clip(base, 0.0, 1.0), np.zeros(len(base)), np.zeros(len(base))
+        return np.clip(base, 0.0, 1.0), np.zeros(n), np.zeros(n), 1.0
     irr = irradiance(env_sh, normals)
-    ao = np.ones(len(base)) if occlusion is None else np.maximum(occlusion, MIN_OCCLUSION)
-    return fit_metallic_roughness(base / (irr * ao[:, None]), w_r)
+    ao = np.ones(n) if occlusion is None else np.maximum(occlusion, MIN_OCCLUSION)
+    light = irr * ao[:, None]
+    a = base / light
+    kap = np.zeros(n) if grazing is None else grazing
+    pick = np.random.default_rng(0).permutation(n)[:SCALE_SAMPLES]
+    weight = np.mean(light[pick] ** 2, 1)
+
+    def cost(scale: float) -> float:
+        _, _, res = fit_metallic_roughness(a[pick] / scale, w_r[pick] / scale, kap[pick], grid=21)
+        return float(np.sum(scale * scale * weight * res))
+
+    costs = [cost(float(x)) for x in ENV_SCALES]
+    best = int(np.argmin(costs))
+    lo = np.log(ENV_SCALES[max(best - 1, 0)])
+    hi = np.log(ENV_SCALES[min(best + 1, len(ENV_SCALES) - 1)])
+    for _ in range(12):  # ternary search in log s between the grid neighbours
+        x1, x2 = lo + (hi - lo) / 3, hi - (hi - lo) / 3
+        if cost(float(np.exp(x1))) <= cost(float(np.exp(x2))):
+            hi = x2
+        else:
+            lo = x1
+    s = float(np.exp(0.5 * (lo + hi)))
+    if cost(s) > costs[best]:
+        s = float(ENV_SCALES[best])
+    c, m, res = fit_metallic_roughness(a / s, w_r / s, kap)
+    return c, m, res, s
