@@ -42,10 +42,10 @@ import socket
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from datetime import UTC, datetime
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from sqlalchemy import Update, delete, func, select, update
 
@@ -64,6 +64,13 @@ from api.service.store import (
     scene_files_key,
 )
 from api.service.webhooks import record_job_end
+
+if TYPE_CHECKING:  # the engine is imported lazily, where a job needs it
+    import trimesh
+
+    from core.asset.export import AssetOptions
+    from core.model.trained import TrainedModel
+    from core.scene.views import View
 
 log = logging.getLogger("glint.runner")
 
@@ -465,55 +472,17 @@ def _run_mesh(
     ``export_asset`` itself. A failed or cancelled bake keeps the finished mesh: its
     files stay this job's artifacts, and a failure's error says why there is no asset.
     """
-    from core.meshing.mesh import MeshCancelledError, mesh_run
-
-    config = dict(config)
-    asset = config.pop("asset", None)  # not a mesh_model parameter
-    out.mkdir(parents=True, exist_ok=True)
-    if asset is None:
-        try:
-            mesh_run(
-                parent_run,
-                out,
-                scene_dir,
-                device=device,
-                max_resolution=max_resolution,
-                **config,  # the MeshCreate request the API validated: mesh_model's parameters
-                on_event=reporter.on_event,
-                should_stop=reporter.should_stop,
-            )
-        except MeshCancelledError:
-            return "cancelled"
-        return "succeeded"
-    return _run_mesh_and_asset(
-        config, asset, parent_run, scene_dir, out, reporter, device, max_resolution
-    )
-
-
-def _run_mesh_and_asset(
-    config: dict[str, Any],
-    asset: dict[str, Any],
-    parent_run: Path,
-    scene_dir: Path,
-    out: Path,
-    reporter: _JobReporter,
-    device: str | None,
-    max_resolution: int,
-) -> str:
-    """The mesh, then the asset baked from it into ``out`` (see :func:`_run_mesh`)."""
-    from core.asset.export import (
-        ASSET_FILES,
-        AssetError,
-        AssetOptions,
-        asset_progress,
-        export_asset,
-    )
+    from core.asset.export import AssetOptions
     from core.meshing.mesh import MeshCancelledError, mesh_model, stage_progress
     from core.model.run_folder import open_run
 
-    options = AssetOptions(**asset)  # the AssetCreate request the API validated
-    options.check()  # before the mesh: a bad option costs nothing
+    config = dict(config)
+    asset = config.pop("asset", None)  # not a mesh_model parameter
+    options = None if asset is None else AssetOptions(**asset)  # validated by the API
+    if options is not None:
+        options.check()  # before the mesh: a bad option costs nothing
     chain = _StageChain(reporter.on_event)
+    out.mkdir(parents=True, exist_ok=True)
     model, scene = open_run(parent_run, scene_dir, device=device)
     views = scene.train
     try:
@@ -522,12 +491,32 @@ def _run_mesh_and_asset(
             views,
             out,
             max_resolution=max_resolution,
-            **config,
-            progress=stage_progress(chain.first, len(views)),
+            **config,  # the MeshCreate request the API validated: mesh_model's parameters
+            progress=stage_progress(
+                reporter.on_event if options is None else chain.first, len(views)
+            ),
             should_stop=reporter.should_stop,
         )
     except MeshCancelledError:
         return "cancelled"
+    if options is None:
+        return "succeeded"
+    return _bake_asset(model, views, out, mesh, options, chain, reporter)
+
+
+def _bake_asset(
+    model: TrainedModel,
+    views: Sequence[View],
+    out: Path,
+    mesh: trimesh.Trimesh,
+    options: AssetOptions,
+    chain: _StageChain,
+    reporter: _JobReporter,
+) -> str:
+    """The asset of the mesh just made into ``out`` (see :func:`_run_mesh`)."""
+    from core.asset.export import ASSET_FILES, AssetError, asset_progress, export_asset
+    from core.meshing.mesh import MeshCancelledError
+
     try:
         export_asset(
             model,
@@ -541,7 +530,7 @@ def _run_mesh_and_asset(
     except Exception as exc:
         for name in ASSET_FILES:  # a half-written asset is no asset; the mesh stays
             (out / name).unlink(missing_ok=True)
-        if reporter.should_stop():  # export_asset reports a stop as an AssetError
+        if isinstance(exc, MeshCancelledError):  # AssetCancelledError: the job was cancelled
             return "cancelled"
         if isinstance(exc, AssetError):
             raise AssetError(

@@ -196,7 +196,7 @@ def export_asset(
         baked.base, baked.w_r, baked.normal, occlusion, env_sh, baked.grazing
     )
     known = texels.mask()
-    seen_img = texels.to_image(baked.seen.astype(np.float32))[..., 0] > 0
+    seen_img = texels.mask(baked.seen)
     gutter = 2 * 8  # enough passes to cover the atlas padding and small unseen islands
 
     def texture(values: np.ndarray, fill: float) -> np.ndarray:
@@ -213,7 +213,6 @@ def export_asset(
     )
     ts = _tangent_space(texels, baked.normal)
     normal_img = fill_unknown(texels.to_image(ts * 0.5 + 0.5), known, gutter)
-    normal_img[~known & ~(normal_img.any(-1))] = (0.5, 0.5, 1.0)
     orm_img = np.stack([ao_img, rough_img, metal_img], -1)
     step("material")
     glb_mesh = GlbMesh(uvm.positions, uvm.normals, uvm.tangents, uvm.uvs, uvm.faces)

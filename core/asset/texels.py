@@ -39,9 +39,13 @@ class TexelSamples:
         img[self.rows, self.cols] = values
         return img
 
-    def mask(self) -> np.ndarray:
+    def mask(self, select: np.ndarray | None = None) -> np.ndarray:
+        """(size, size) bool: the covered texels, or those of them where ``select`` (M,)."""
         m = np.zeros((self.size, self.size), dtype=bool)
-        m[self.rows, self.cols] = True
+        if select is None:
+            m[self.rows, self.cols] = True
+        else:
+            m[self.rows[select], self.cols[select]] = True
         return m
 
 

@@ -143,9 +143,7 @@ def export_run_asset(
             progress=asset_progress(on_event),
             should_stop=should_stop,
         )
-    except MeshCancelledError:
-        raise
-    except AssetError as exc:
+    except AssetError as exc:  # a cancel (AssetCancelledError) is not one: it goes up
         return {"error": str(exc)}
     return {"files": sorted(info["files"].values()), "faces": info["mesh"]["faces"]}
 
