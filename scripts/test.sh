@@ -15,5 +15,7 @@ ruff check .
 ruff format --check .
 echo "== pytest"
 # two workers (the machine's cores), each test file on one worker so a file's fixtures
-# (servers, trained runs) are built once; PYTEST_WORKERS=0 runs everything in-process
-python -m pytest -q -p no:cacheprovider -n "${PYTEST_WORKERS:-2}" --dist loadfile "$@"
+# (servers, trained runs) are built once, longest files first (tests/file_order.py);
+# PYTEST_WORKERS=0 runs everything in-process
+python -m pytest -q -p no:cacheprovider -n "${PYTEST_WORKERS:-2}" --dist loadfile \
+    --no-loadscope-reorder "$@"

@@ -8,6 +8,13 @@ from pathlib import Path
 import pytest
 import torch
 
+# longest test files first, for two xdist workers (tests/file_order.py)
+from tests.file_order import (  # noqa: F401
+    pytest_collection_modifyitems,
+    pytest_runtest_logreport,
+    pytest_sessionfinish,
+)
+
 # Tests run many small tensor ops: a second intra-op thread gains nothing there and,
 # on a loaded 2-core machine, makes every op wait for a descheduled thread (measured
 # 84 ms vs 1.35 s per training step). One thread keeps test time independent of load.
