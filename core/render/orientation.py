@@ -62,12 +62,35 @@ def add_orientation_state(gaussians: Gaussians) -> None:
 
 
 @torch.no_grad()
-def record_visibility(gaussians: Gaussians, camera: Camera, depth: Tensor, valid: Tensor) -> int:
+def record_visibility(
+    gaussians: Gaussians,
+    camera: Camera,
+    depth: Tensor,
+    valid: Tensor,
+    *,
+    compiled: bool | None = None,
+) -> int:
     """Add this view's direction to the Gaussians on its rendered surface; returns how
-    many. ``depth``/``valid`` are the view's rendered geometry depth (H, W)."""
+    many. ``depth``/``valid`` are the view's rendered geometry depth (H, W).
+    ``compiled``: one numba pass (core.render.orientation_compiled; None: for CPU
+    models), False: these torch ops, the reference."""
     if not has_orientation(gaussians):
         return 0
     mu = gaussians.params["means"].detach()
+    seen_p, count_p = gaussians.params[SEEN_DIR], gaussians.params[SEEN_COUNT]
+    if compiled is None:
+        compiled = (
+            mu.device.type == "cpu"
+            and depth.dtype in (torch.float32, torch.float64)
+            and seen_p.is_contiguous()
+            and count_p.is_contiguous()
+        )
+    if compiled:
+        from core.render.orientation_compiled import record_compiled
+
+        return record_compiled(
+            mu, seen_p.data, count_p.data, camera, depth, valid, SURFACE_TOLERANCE_PX
+        )
     uv, z = camera.project(mu.double())
     uv, z = uv.to(depth.dtype), z.to(depth.dtype)
     d, inside = bilinear_lookup(depth, uv)

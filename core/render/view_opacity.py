@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import torch
 from torch import Tensor
 
+from core.render import grazing as gz
+from core.render import orientation as ori
 from core.render.gaussians import Gaussians
-from core.render.grazing import grazing_factor
-from core.render.orientation import facing
 from core.scene.cameras import Camera
 
 
@@ -17,16 +18,46 @@ def view_opacity_scale(
     one_sided: bool,
     grazing: bool,
     normals: Tensor | None = None,
+    compiled: bool | None = None,
 ) -> Tensor | None:
     """(N,) factor on each opacity for ``camera`` (None: every opacity as stored).
     ``one_sided``: cull splats seen from behind (core.render.orientation); ``grazing``:
     the learned edge-on fade (core.render.grazing). Either is skipped when the model
-    lacks its state."""
-    if not (one_sided or grazing):
+    lacks its state. ``compiled``: one numba pass for CPU models
+    (core.render.view_opacity_compiled; None: wherever the model is on the CPU),
+    False: the torch functions, the reference."""
+    cull_on = one_sided and ori.has_orientation(gaussians)
+    fade_on = grazing and gz.has_grazing(gaussians)
+    if not (cull_on or fade_on):
         return None
     n = (gaussians.normals() if normals is None else normals).detach()
-    cull = facing(gaussians, camera, n) if one_sided else None
-    fade = grazing_factor(gaussians, camera, n) if grazing else None
+    if compiled is None:
+        compiled = n.device.type == "cpu" and n.dtype in (torch.float32, torch.float64)
+    if compiled:
+        return _compiled(gaussians, camera, n, cull_on, fade_on)
+    cull = ori.facing(gaussians, camera, n) if cull_on else None
+    fade = gz.grazing_factor(gaussians, camera, n) if fade_on else None
     if cull is None:
         return fade
     return cull if fade is None else cull * fade
+
+
+def _compiled(
+    gaussians: Gaussians, camera: Camera, n: Tensor, cull_on: bool, fade_on: bool
+) -> Tensor:
+    from core.render.view_opacity_compiled import view_factors
+
+    p = gaussians.params
+    mu = p["means"].detach()
+    cull, angle = view_factors(
+        n.to(mu.dtype), mu, camera.center,
+        seen=p[ori.SEEN_DIR].detach() if cull_on else None,
+        count=p[ori.SEEN_COUNT].detach() if cull_on else None,
+        log_scales=p["log_scales"].detach() if cull_on else None,
+        exponent=gz.EXPONENT if fade_on else None,
+    )  # fmt: skip
+    if angle is None:
+        assert cull is not None
+        return cull
+    fade = 1.0 - torch.sigmoid(p[gz.GRAZE_KEY]) * angle
+    return fade if cull is None else cull * fade
