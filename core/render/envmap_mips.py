@@ -31,7 +31,7 @@ import math
 import torch
 from torch import Tensor
 
-from core.render.envmap import _PaddedBilinear, guarded_face_uv, pad_cube
+from core.render.envmap import _min_major, _PaddedBilinear, guarded_face_uv, pad_cube
 
 
 def mip_sizes(resolution: int) -> list[int]:
@@ -75,11 +75,16 @@ def _packed_levels(levels: list[Tensor]) -> tuple[Tensor, list[int], list[int]]:
     return flat, offsets, sizes
 
 
-def sample_cube_lod(texels: Tensor, dirs: Tensor, lod: Tensor) -> Tensor:
+def sample_cube_lod(
+    texels: Tensor, dirs: Tensor, lod: Tensor, *, compiled: bool | None = None
+) -> Tensor:
     """Radiance of the cube map (6, R, R, C) toward ``dirs`` (..., 3) at level of detail
     ``lod`` (...): linear between the two nearest levels of :func:`cube_mip_chain`, each
     read with seamless bilinear taps. Degenerate directions return 0 with zero gradient,
-    as in ``sample_cube``. Differentiable in texels, directions and ``lod``."""
+    as in ``sample_cube``. Differentiable in texels, directions and ``lod``.
+    ``compiled``: the per-pixel lookup and its backward as numba loops
+    (core.render.envmap_lookup_compiled; None: for CPU tensors), False: the torch ops
+    below, the reference."""
     if dirs.shape[-1] != 3 or lod.shape != dirs.shape[:-1]:
         raise ValueError(
             f"directions must be (..., 3) and lod (...), got {tuple(dirs.shape)} and "
@@ -88,6 +93,19 @@ def sample_cube_lod(texels: Tensor, dirs: Tensor, lod: Tensor) -> Tensor:
     levels = cube_mip_chain(texels)
     ch = texels.shape[-1]
     lead = dirs.shape[:-1]
+    if compiled is None:
+        compiled = all(t.device.type == "cpu" for t in (texels, dirs, lod)) and (
+            texels.dtype in (torch.float32, torch.float64)
+        )
+    if compiled:
+        from core.render.envmap_lookup_compiled import sample_packed_lod
+
+        flat, offsets, sizes = _packed_levels(levels)
+        out = sample_packed_lod(
+            flat, offsets, sizes, dirs.reshape(-1, 3).to(texels.dtype),
+            lod.reshape(-1).to(texels.dtype), _min_major(texels.dtype),
+        )  # fmt: skip
+        return out.reshape(*lead, ch)
     valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
     lod = lod.reshape(-1).to(texels.dtype).clamp(0.0, float(len(levels) - 1))
     # a NaN LOD reads level 0 with a NaN weight: NaN out (the trainer's guard skips the
