@@ -6,7 +6,7 @@ driven by a Python client::
 
     .venv/bin/python -m bench.viewer [--gaussians 100000] [--size 512] [--seconds 6]
 
-Prints one JSON object. "moving" streams cameras at 30 Hz along an orbit (the
+Prints one JSON object. "moving" streams cameras at 60 Hz along an orbit (the
 server renders the newest, at the resolution its governor picks); "still" asks for
 full-resolution frames of a resting camera.
 """
@@ -136,7 +136,8 @@ def run(n: int, size: int, seconds: float) -> dict[str, Any]:
                 first = frame(ws)
                 ttff = time.perf_counter() - t0
 
-                # Moving: a 30 Hz stream of cameras; frames arrive as fast as renders allow.
+                # Moving: a camera per display frame (60 Hz), as the browser sends one per
+                # animation frame while it moves; frames arrive as fast as renders allow.
                 stop = threading.Event()
                 sent = [1]
 
@@ -144,7 +145,7 @@ def run(n: int, size: int, seconds: float) -> dict[str, Any]:
                     while not stop.is_set():
                         sent[0] += 1
                         ws.send(camera(sent[0], sent[0] * 0.02, size, still=False))
-                        time.sleep(1 / 30)
+                        time.sleep(1 / 60)
 
                 th = threading.Thread(target=sender)
                 moving: list[dict[str, Any]] = []

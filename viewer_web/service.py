@@ -110,7 +110,7 @@ class ViewerService:
         secret: bytes | None = None,
         max_viewers: int = 4,
         device: torch.device | str | None = None,
-        target_fps: float = 15.0,
+        target_fps: float = 30.0,
         refine_after_s: float = 0.25,
         status_every_s: float = 1.0,
         token_ttl_s: float = tokens.DEFAULT_TTL_S,

@@ -21,7 +21,7 @@ def test_scale_meets_budget_with_fixed_cost() -> None:
     full = 1000 * 1000
     scale = simulate(a_ms=40.0, b_ms_per_px=240 / full, full_px=full)  # 280 ms at full res
     ms = 40.0 + 240 * scale * scale
-    assert ms == pytest.approx(100.0, rel=0.25), (scale, ms)
+    assert ms == pytest.approx(ResolutionGovernor.RENDER_SHARE * 100.0, rel=0.25), (scale, ms)
 
 
 def test_fast_renders_go_full_and_slow_ones_hit_the_floor() -> None:
