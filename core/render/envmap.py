@@ -165,7 +165,7 @@ def guarded_face_uv(dirs: Tensor, dtype: torch.dtype) -> tuple[Tensor, Tensor, T
     return (valid, *direction_to_face_uv(d))
 
 
-def sample_cube(texels: Tensor, dirs: Tensor) -> Tensor:
+def sample_cube(texels: Tensor, dirs: Tensor, *, compiled: bool | None = None) -> Tensor:
     """Seamless bilinear lookup of cube texels (6, R, R, C) at directions (..., 3) -> (..., C).
 
     Directions need not be unit length. A direction that is not finite, or whose largest
@@ -173,12 +173,29 @@ def sample_cube(texels: Tensor, dirs: Tensor) -> Tensor:
     zero length), returns 0 with zero gradient, so a bad pixel can neither produce nor
     propagate NaN into the texel gradients. Differentiable in texels and directions
     (the direction gradient runs through the face projection sc/ma, tc/ma).
+    ``compiled``: the per-pixel numba lookup and backward of
+    ``core.render.envmap_lookup_compiled`` with one level (None: for CPU tensors), False:
+    the torch ops below, the reference.
     """
     if dirs.shape[-1] != 3:
         raise ValueError(f"directions must be (..., 3), got {tuple(dirs.shape)}")
     r, ch = texels.shape[1], texels.shape[-1]
     p = r + 2
     lead = dirs.shape[:-1]
+    if compiled is None:
+        compiled = (
+            texels.device.type == "cpu"
+            and dirs.device.type == "cpu"
+            and texels.dtype in (torch.float32, torch.float64)
+        )
+    if compiled:
+        from core.render.envmap_lookup_compiled import sample_packed_lod
+
+        d = dirs.reshape(-1, 3).to(texels.dtype)
+        level0 = torch.zeros(d.shape[0], dtype=texels.dtype)
+        padded = pad_cube(texels).reshape(-1, ch)
+        out = sample_packed_lod(padded, [0], [p], d, level0, _min_major(texels.dtype))
+        return out.reshape(*lead, ch)
     valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
 
     # Continuous coordinates in the padded face, texel centres at integers:
