@@ -324,12 +324,21 @@ class Gaussians:
         """Index k = argmin(s) of the shortest axis (N,), as in Eq. 6 and Eq. 7."""
         return self.params["log_scales"].argmin(dim=1)
 
-    def normals(self) -> Tensor:
+    def normals(self, *, compiled: bool | None = None) -> Tensor:
         """Eq. 6: unit world-space axis of the smallest scale, (N, 3), unoriented.
 
         Column k of R (see the module docstring for the paper's "row" wording).
         Differentiable w.r.t. ``quats``; the choice of k is not (argmin).
+        ``compiled``: one numba pass with its backward (core.render.normals_compiled;
+        None: on the CPU), False: the torch ops below, the reference.
         """
+        q, s = self.params["quats"], self.params["log_scales"]
+        if compiled is None:
+            compiled = q.device.type == "cpu" and q.dtype in (torch.float32, torch.float64)
+        if compiled:
+            from core.render.normals_compiled import normals_compiled
+
+            return normals_compiled(q, s)
         R = self.rotations
         k = self.min_axis()
         return R[torch.arange(self.num, device=R.device), :, k]
