@@ -157,3 +157,34 @@ def test_two_views_sharing_one_normals_tensor_match_computing_them_per_view():
     assert grads_once.keys() == grads_per_view.keys() and "quats" in grads_once
     for k in grads_once:
         torch.testing.assert_close(grads_once[k], grads_per_view[k], rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("backend", ["cpu", "reference"])
+def test_a_geometry_only_pass_is_the_full_pass_without_colour(backend):
+    """The neighbour view of a training step splats normal, D and centre z only: those
+    buffers, the depth and every gradient a depth loss sends equal the full pass's."""
+    from core.render.gbuffer import render_gbuffer
+    from core.scene.cameras import Camera, Intrinsics
+
+    from .test_silhouette import discs_on_the_sphere
+
+    g = discs_on_the_sphere(3000)
+    cam = Camera.look_at([0.3, 0.4, 2.5], [0, 0, 0], [0, 1, 0], Intrinsics(60, 60, 24, 24, 48, 48))
+    out = {}
+    for geometry_only in (False, True):
+        for p in g.params.values():
+            p.grad = None
+        gb, _ = render_gbuffer(g, cam, sh_degree=0, backend=backend, with_roughness=False,
+                               geometry_only=geometry_only)  # fmt: skip
+        loss = (gb.depth * gb.depth_valid).sum() + gb.center_depth.sum() + gb.normal.square().sum()
+        loss.backward()
+        grads = {k: p.grad.clone() for k, p in g.params.items() if p.grad is not None}
+        out[geometry_only] = (gb, grads)
+    (full, g_full), (geo, g_geo) = out[False], out[True]
+    for name in ("normal", "plane_dist", "alpha", "z_blend", "depth", "center_depth"):
+        torch.testing.assert_close(getattr(geo, name), getattr(full, name), rtol=1e-6, atol=1e-7)
+    assert torch.equal(geo.depth_valid, full.depth_valid)
+    assert float(geo.base.abs().sum()) == 0.0 and float(geo.w_r.abs().sum()) == 0.0
+    assert set(g_geo) <= set(g_full)  # colour parameters get no gradient
+    for k, v in g_geo.items():  # float32 sums in another order: rounding only
+        torch.testing.assert_close(v, g_full[k], rtol=1e-3, atol=1e-5, msg=k)

@@ -117,15 +117,20 @@ def gbuffer_features(
     if compiled and can_build_compiled(means, colors, normals_world, w_r):
         feats = features_compiled(means, colors, normals_world, w_r, camera)
         return feats if roughness is None else torch.cat([feats, roughness[:, None]], dim=-1)
+    n_cam, D, mu_cam = _facing_planes(means, normals_world, camera)
+    extra = [] if roughness is None else [roughness[:, None]]
+    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3], *extra], dim=-1)
+
+
+def _facing_planes(means: Tensor, normals_world: Tensor, camera: Camera) -> tuple[Tensor, ...]:
+    """Camera-space normal flipped to face the camera (n·μ_cam ≤ 0), plane distance
+    D = n·μ_cam (N, 1) and camera-space centre (N, 3)."""
     R = camera.R.to(means)
     mu_cam = means @ R.T + camera.t.to(means)
     n_cam = normals_world @ R.T
-    # Eq. 6 normals flipped so each faces the camera (n·μ_cam ≤ 0).
     sign = torch.where((n_cam * mu_cam).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(means)
     n_cam = n_cam * sign
-    D = (n_cam * mu_cam).sum(-1, keepdim=True)
-    extra = [] if roughness is None else [roughness[:, None]]
-    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3], *extra], dim=-1)
+    return n_cam, (n_cam * mu_cam).sum(-1, keepdim=True), mu_cam
 
 
 def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
@@ -175,12 +180,23 @@ def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
     return gb.center_depth, gb.alpha > MIN_ALPHA
 
 
+# channels of a geometry-only pass: normal (3), D, centre z
+_G_NORMAL, _G_PLANE, _G_Z = slice(0, 3), 3, 4
+
+
+def geometry_features(means: Tensor, normals_world: Tensor, camera: Camera) -> Tensor:
+    """(N, 5) channels of a pass that only needs depth and normals: the facing camera
+    normal (3), D and centre z, as :func:`gbuffer_features` computes them."""
+    n_cam, D, mu_cam = _facing_planes(means, normals_world, camera)
+    return torch.cat([n_cam, D, mu_cam[:, 2:3]], dim=-1)
+
+
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,
     scales: Tensor | None,
     opacities: Tensor,
-    colors: Tensor,
+    colors: Tensor | None,
     normals_world: Tensor,
     w_r: Tensor,
     camera: Camera,
@@ -198,16 +214,23 @@ def render_gbuffer_tensors(
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
 
-    ``colors`` (N, 3) are already evaluated for this view; ``normals_world`` (N, 3)
+    ``colors`` (N, 3) are already evaluated for this view; None splats the geometry
+    only (normal, D, centre z: a pass read for depth, e.g. a training step's neighbour
+    view): its ``base`` and ``w_r`` are zeros, and ``w_r``/``roughness`` are ignored.
+    ``normals_world`` (N, 3)
     are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
     screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
     """
+    geometry_only = colors is None
     with stage("features"):
-        feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
+        if geometry_only:
+            feats = geometry_features(means, normals_world, camera)
+        else:
+            feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
     if near is None:
-        near = near_plane(feats[:, _C_Z])
+        near = near_plane(feats[:, _G_Z if geometry_only else _C_Z])
     res = rasterize(
         means,
         quats,
@@ -223,6 +246,20 @@ def render_gbuffer_tensors(
         eps2d=lowpass,
     )
     f = res.features
+    if geometry_only:
+        zero = f.new_zeros(f.shape[:-1])
+        gb = GBuffer(
+            base=zero[..., None].expand(*zero.shape, 3),
+            normal=f[..., _G_NORMAL],
+            plane_dist=f[..., _G_PLANE],
+            w_r=zero,
+            alpha=res.alpha,
+            camera=camera,
+            z_blend=f[..., _G_Z],
+            min_alpha=min_alpha,
+            min_cos=min_cos,
+        )
+        return gb, res
     gb = GBuffer(
         base=f[..., _C_BASE],
         normal=f[..., _C_NORMAL],
@@ -247,6 +284,7 @@ def render_gbuffer(
     opacity_scale: Tensor | None = None,
     normals: Tensor | None = None,
     with_roughness: bool = True,
+    geometry_only: bool = False,
     **kw,
 ) -> tuple[GBuffer, RasterResult]:
     """G-buffer of a Gaussian model for one view (SH evaluated toward this camera).
@@ -254,10 +292,14 @@ def render_gbuffer(
     ``normals``: the model's Eq. 6 normals when the caller already has them (a training
     step renders two views and the opacity factors read them too: computed once, their
     backward runs once). ``with_roughness=False`` leaves the model's roughness out (a
-    frame or phase that does not read the env map splats no channel for it)."""
+    frame or phase that does not read the env map splats no channel for it).
+    ``geometry_only``: splat normal, D and centre z only, no colours (a view read for
+    its depth; see :func:`render_gbuffer_tensors`)."""
     op = gaussians.opacities if opacity_scale is None else gaussians.opacities * opacity_scale
-    with stage("sh_colors"):
-        colors = gaussians.colors(camera, sh_degree)
+    colors = None
+    if not geometry_only:
+        with stage("sh_colors"):
+            colors = gaussians.colors(camera, sh_degree)
     if normals is None:
         with stage("normals"):
             normals = gaussians.normals()
@@ -271,6 +313,6 @@ def render_gbuffer(
         gaussians.w_r,
         camera,
         backend=backend,
-        roughness=splat_roughness(gaussians) if with_roughness else None,
+        roughness=splat_roughness(gaussians) if with_roughness and not geometry_only else None,
         **kw,
     )

@@ -461,6 +461,7 @@ class Trainer:
                         self.gaussians, nview.camera, sh_degree=0, backend=cfg.backend,
                         antialiased=phase.antialiased, lowpass=phase.lowpass,
                         opacity_scale=cull_n, normals=normals, with_roughness=False,
+                        geometry_only=True,  # read for its depth and normals only
                     )  # fmt: skip
                 with stage("depth"):
                     d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
