@@ -68,13 +68,23 @@ def single_view_loss(
     weight: Tensor | None = None,
     *,
     same_surface: bool = False,
+    compiled: bool | None = None,
 ) -> Tensor:
     """Eq. 11: mean over valid pixels of 1 − n·N (rendered vs depth-derived normal),
     each pixel weighted by ``weight`` (H, W) when given (e.g. :func:`edge_weight`).
 
     ``same_surface``: N from one-sided differences across depth jumps
-    (:func:`normals_from_depth` with :data:`SAME_SURFACE_JUMP_RATIO`)."""
+    (:func:`normals_from_depth` with :data:`SAME_SURFACE_JUMP_RATIO`). ``compiled``:
+    the fused passes of ``core.training.depth_normal_compiled`` (None: for CPU
+    tensors), False: the torch ops below, the reference."""
     ratio = SAME_SURFACE_JUMP_RATIO if same_surface else None
+    if compiled is None:
+        compiled = depth.device.type == "cpu" and depth.dtype in (torch.float32, torch.float64)
+    if compiled:
+        from core.training.depth_normal_compiled import single_view_loss_compiled
+
+        rays = camera.camera_rays(depth.dtype, depth.device)
+        return single_view_loss_compiled(rendered_normal, depth, valid, rays, weight, ratio)
     N, ok = normals_from_depth(depth, valid, camera, ratio)
     if not bool(ok.any()):
         return rendered_normal.sum() * 0.0
