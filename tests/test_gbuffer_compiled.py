@@ -53,3 +53,22 @@ def test_gradients_keep_the_torch_path():
     with torch.no_grad():
         assert can_build_compiled(means, colors, normals, w_r)
     assert not can_build_compiled(means.detach().double(), colors, normals, w_r)
+
+
+@pytest.mark.parametrize("n", [1, 2, 7, 100_000])
+def test_near_plane_median_is_torchs_lower_median(n):
+    """The radix-select median equals torch's (lower) median of the finite positive
+    values, ties, negatives, NaN and Inf included."""
+    from core.render.gbuffer_compiled import lower_median_positive
+
+    g = torch.Generator().manual_seed(n)
+    z = torch.randn(n, generator=g).abs() * 3 + 0.01
+    z[::5] = -1.0
+    z[1::9] = float("nan")
+    z[2::11] = float("inf")
+    z[3::13] = z[0] if n > 3 else z[3::13]  # ties
+    keep = z[torch.isfinite(z) & (z > 0)]
+    want = None if keep.numel() == 0 else float(keep.median())
+    assert lower_median_positive(z) == want
+    assert lower_median_positive(z[:0]) is None
+    assert lower_median_positive(torch.tensor([-1.0, 0.0, float("nan")])) is None

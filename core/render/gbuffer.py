@@ -10,7 +10,11 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from core.render.gbuffer_compiled import can_build_compiled, features_compiled
+from core.render.gbuffer_compiled import (
+    can_build_compiled,
+    features_compiled,
+    lower_median_positive,
+)
 from core.render.raster import RasterResult, rasterize
 from core.render.roughness import roughness as splat_roughness
 from core.scene.cameras import Camera
@@ -140,6 +144,9 @@ def near_plane(z_cam: Tensor, fraction: float = NEAR_FRACTION) -> float:
     camera nothing is visible and any positive value will do (1.0 is returned).
     """
     z = z_cam.detach()
+    if z.device.type == "cpu" and z.dtype == torch.float32:  # the median by radix select
+        med = lower_median_positive(z)
+        return 1.0 if med is None else fraction * med
     z = z[torch.isfinite(z) & (z > 0)]
     if z.numel() == 0:
         return 1.0
