@@ -161,13 +161,22 @@ def planar_depth(
     *,
     min_alpha: float = MIN_ALPHA,
     min_cos: float = MIN_COS,
+    compiled: bool | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Eq. 8 per pixel: d = D / (N·r̃) with r̃ = K⁻¹(u, v, 1); (depth, valid).
 
     Invalid pixels (low alpha, grazing normal, non-positive or non-finite depth) get
-    depth 0 and no gradient: the division is guarded, never Inf or NaN.
+    depth 0 and no gradient: the division is guarded, never Inf or NaN. ``compiled``:
+    one numba pass and its backward (core.render.planar_depth_compiled; None: for CPU
+    buffers), False: the torch ops below, the reference.
     """
     rays = camera.camera_rays(normal.dtype, normal.device)
+    if compiled is None:
+        compiled = normal.device.type == "cpu" and normal.dtype in (torch.float32, torch.float64)
+    if compiled:
+        from core.render.planar_depth_compiled import planar_depth_compiled
+
+        return planar_depth_compiled(normal, plane_dist, alpha, rays, min_alpha, min_cos)
     ndotr = (normal * rays).sum(-1)
     norm = normal.norm(dim=-1) * rays.norm(dim=-1)
     cos = ndotr.abs() / norm.clamp_min(1e-30)
