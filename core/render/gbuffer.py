@@ -321,7 +321,8 @@ def render_gbuffer(
             normals = gaussians.normals()
     return render_gbuffer_tensors(
         gaussians.params["means"],
-        gaussians.unit_quats,
+        # raw: every projection normalises (and differentiates through) it itself
+        gaussians.params["quats"],
         gaussians.scales,
         op,
         colors,
