@@ -108,6 +108,7 @@ def multi_view_loss(
     n_pixels: int | None = None,
     generator: torch.Generator | None = None,
     error_weighting: bool = False,
+    compiled: bool | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """Eq. 12–14: forward–backward reprojection error between two depth maps.
 
@@ -117,7 +118,9 @@ def multi_view_loss(
     whose error is at most ``max_error_px`` (larger errors are occlusions or
     mismatches, excluded as in the paper). With ``error_weighting`` each kept pixel
     is weighted by exp(−error) (detached), as PGSR does, so pixels that are probably
-    mismatched pull less. Returns (loss, stats).
+    mismatched pull less. Returns (loss, stats). ``compiled``: the round trip and its
+    backward as one numba pass (core.training.multi_view_compiled; None: for CPU
+    tensors), False: the torch ops below, the reference.
     """
     dtype, device = depth_ref.dtype, depth_ref.device
     flat_valid = valid_ref.reshape(-1)
@@ -132,6 +135,16 @@ def multi_view_loss(
     zero = depth_ref.sum() * 0.0
     if idx.numel() == 0:
         return zero, {"pixels": 0.0, "kept": 0.0}
+    if compiled is None:
+        compiled = device.type == "cpu" and dtype in (torch.float32, torch.float64)
+    if compiled:
+        from core.training.multi_view_compiled import multi_view_loss_compiled
+
+        loss, kept = multi_view_loss_compiled(
+            depth_ref, depth_nb, idx, valid_nb, cam_ref, cam_nb, max_error_px, error_weighting
+        )
+        stats = {"pixels": float(idx.numel()), "kept": float(kept)}
+        return (loss if kept else zero), stats
     W = depth_ref.shape[1]
     uv_r = torch.stack([(idx % W).to(dtype) + 0.5, (idx // W).to(dtype) + 0.5], dim=-1)
     d_r = depth_ref.reshape(-1)[idx]
