@@ -13,6 +13,10 @@ done
 echo "== ruff"
 ruff check .
 ruff format --check .
+echo "== numba kernels"
+# compiled once into their cache here, so the test workers and the servers they start
+# load them instead of each compiling the same kernels at once (scripts/warm_kernels.py)
+python scripts/warm_kernels.py
 echo "== pytest"
 # two workers (the machine's cores), each test file on one worker so a file's fixtures
 # (servers, trained runs) are built once, longest files first (tests/file_order.py);
