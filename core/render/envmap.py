@@ -37,17 +37,10 @@ import torch
 from torch import Tensor, nn
 from torch.autograd.function import once_differentiable
 
-FACE_NAMES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
+from core.kernels.dispatch import cpu_float
+from core.render.cube_faces import FACE_TABLE
 
-# Per face: (major axis, major sign, sc axis, sc sign, tc axis, tc sign).
-FACE_TABLE: tuple[tuple[int, int, int, int, int, int], ...] = (
-    (0, +1, 2, -1, 1, -1),
-    (0, -1, 2, +1, 1, -1),
-    (1, +1, 0, +1, 2, +1),
-    (1, -1, 0, +1, 2, -1),
-    (2, +1, 0, +1, 1, -1),
-    (2, -1, 0, -1, 1, -1),
-)
+FACE_NAMES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
 
 
 @lru_cache(maxsize=16)
@@ -183,11 +176,7 @@ def sample_cube(texels: Tensor, dirs: Tensor, *, compiled: bool | None = None) -
     p = r + 2
     lead = dirs.shape[:-1]
     if compiled is None:
-        compiled = (
-            texels.device.type == "cpu"
-            and dirs.device.type == "cpu"
-            and texels.dtype in (torch.float32, torch.float64)
-        )
+        compiled = cpu_float(texels, dirs)
     if compiled:
         from core.render.envmap_lookup_compiled import sample_packed_lod
 

@@ -27,28 +27,21 @@ from numba import njit
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from core.kernels.pool import kernel_threads, run_workers
+from core.kernels.pool import kernel_threads, run_ranges, run_workers
+from core.render.cube_faces import FACE_TABLE
 
 __all__ = ["sample_packed_lod"]
 
-# per face: major axis, major sign, sc axis, sc sign, tc axis, tc sign (envmap.FACE_TABLE)
-_FACES = np.array(
-    [
-        [0, 1, 2, -1, 1, -1],
-        [0, -1, 2, 1, 1, -1],
-        [1, 1, 0, 1, 2, 1],
-        [1, -1, 0, 1, 2, -1],
-        [2, 1, 0, 1, 1, -1],
-        [2, -1, 0, -1, 1, -1],
-    ],
-    np.int64,
-)
+# per face: major axis, major sign, sc axis, sc sign, tc axis, tc sign
+_FACES = np.array(FACE_TABLE, np.int64)
 
 
 @njit(nogil=True, cache=True)
 def _face_uv(dx, dy, dz):  # pragma: no cover - numba
     """(face, u, v, ma) of a finite, non-zero direction: the largest |component| picks
-    the face (ties to the lower axis), u = sc/ma, v = tc/ma as in ``_FACES``."""
+    the face (ties to the lower axis), u = sc/ma, v = tc/ma as in ``_FACES``.
+    (``shading_compiled._face_st`` is the same selection: numba helpers are not shared
+    across files, whose cache would not notice an edit in the other.)"""
     ax, ay, az = abs(dx), abs(dy), abs(dz)
     if ax >= ay and ax >= az:
         if not dx < 0:
@@ -203,14 +196,7 @@ class _CubeLod(torch.autograd.Function):
         out = np.empty((n_px, flat.shape[1]), f_np.dtype)
         d_np = dirs.detach().contiguous().numpy()
         l_np = lod.detach().contiguous().numpy()
-        nw = max(1, min(kernel_threads(), n_px))
-
-        def worker(w: int, n: int) -> None:
-            step = -(-n_px // n)
-            _forward_rows(w * step, min((w + 1) * step, n_px), f_np, d_np, l_np, offsets, sizes,
-                          min_major, out)  # fmt: skip
-
-        run_workers(worker, nw, ())
+        run_ranges(_forward_rows, n_px, (f_np, d_np, l_np, offsets, sizes, min_major, out))
         ctx.save_for_backward(flat, dirs, lod)
         ctx.meta = (offsets, sizes, min_major)
         return torch.from_numpy(out)

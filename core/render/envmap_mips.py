@@ -31,6 +31,7 @@ import math
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render.envmap import _min_major, _PaddedBilinear, guarded_face_uv, pad_cube
 
 
@@ -94,9 +95,7 @@ def sample_cube_lod(
     ch = texels.shape[-1]
     lead = dirs.shape[:-1]
     if compiled is None:
-        compiled = all(t.device.type == "cpu" for t in (texels, dirs, lod)) and (
-            texels.dtype in (torch.float32, torch.float64)
-        )
+        compiled = cpu_float(texels, dirs, lod)
     if compiled:
         from core.render.envmap_lookup_compiled import sample_packed_lod
 

@@ -38,6 +38,7 @@ import torch
 from scipy.spatial import cKDTree
 from torch import Tensor, nn
 
+from core.kernels.dispatch import cpu_float
 from core.render.rotations import normalize_quats, quat_to_rotmat
 from core.render.sh import MAX_SH_DEGREE, num_sh_bases, rgb_to_sh0, sh_to_rgb
 from core.render.sh_compiled import sh_colors_compiled
@@ -334,7 +335,7 @@ class Gaussians:
         """
         q, s = self.params["quats"], self.params["log_scales"]
         if compiled is None:
-            compiled = q.device.type == "cpu" and q.dtype in (torch.float32, torch.float64)
+            compiled = cpu_float(q)
         if compiled:
             from core.render.normals_compiled import normals_compiled
 

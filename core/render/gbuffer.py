@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render.gbuffer_compiled import (
     can_build_compiled,
     features_compiled,
@@ -172,7 +173,7 @@ def planar_depth(
     """
     rays = camera.camera_rays(normal.dtype, normal.device)
     if compiled is None:
-        compiled = normal.device.type == "cpu" and normal.dtype in (torch.float32, torch.float64)
+        compiled = cpu_float(normal)
     if compiled:
         from core.render.planar_depth_compiled import planar_depth_compiled
 
@@ -264,27 +265,21 @@ def render_gbuffer_tensors(
     f = res.features
     if geometry_only:
         zero = f.new_zeros(f.shape[:-1])
-        gb = GBuffer(
-            base=zero[..., None].expand(*zero.shape, 3),
-            normal=f[..., _G_NORMAL],
-            plane_dist=f[..., _G_PLANE],
-            w_r=zero,
-            alpha=res.alpha,
-            camera=camera,
-            z_blend=f[..., _G_Z],
-            min_alpha=min_alpha,
-            min_cos=min_cos,
-        )
-        return gb, res
+        base, w_r_img, rough = zero[..., None].expand(*zero.shape, 3), zero, None
+        normal, plane, z = f[..., _G_NORMAL], f[..., _G_PLANE], f[..., _G_Z]
+    else:
+        base, w_r_img = f[..., _C_BASE], f[..., _C_WR]
+        rough = None if roughness is None else f[..., _C_ROUGH]
+        normal, plane, z = f[..., _C_NORMAL], f[..., _C_PLANE], f[..., _C_Z]
     gb = GBuffer(
-        base=f[..., _C_BASE],
-        normal=f[..., _C_NORMAL],
-        plane_dist=f[..., _C_PLANE],
-        w_r=f[..., _C_WR],
+        base=base,
+        normal=normal,
+        plane_dist=plane,
+        w_r=w_r_img,
         alpha=res.alpha,
         camera=camera,
-        z_blend=f[..., _C_Z],
-        roughness=None if roughness is None else f[..., _C_ROUGH],
+        z_blend=z,
+        roughness=rough,
         min_alpha=min_alpha,
         min_cos=min_cos,
     )

@@ -29,6 +29,7 @@ import math
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render.depth_geometry import bilinear_lookup
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.scene.cameras import Camera
@@ -79,12 +80,7 @@ def record_visibility(
     mu = gaussians.params["means"].detach()
     seen_p, count_p = gaussians.params[SEEN_DIR], gaussians.params[SEEN_COUNT]
     if compiled is None:
-        compiled = (
-            mu.device.type == "cpu"
-            and depth.dtype in (torch.float32, torch.float64)
-            and seen_p.is_contiguous()
-            and count_p.is_contiguous()
-        )
+        compiled = cpu_float(mu, depth) and seen_p.is_contiguous() and count_p.is_contiguous()
     if compiled:
         from core.render.orientation_compiled import record_compiled
 

@@ -41,7 +41,7 @@ __all__ = ["can_shade_compiled", "shade_compiled"]
 def _face_st(x, y, z):  # pragma: no cover - numba
     """(face, sc, tc, ma) of direction (x, y, z).
 
-    Face and (sc, tc) as ``core.render.envmap.FACE_TABLE``; ties go to the lower axis.
+    Face and (sc, tc) as ``core.render.cube_faces.FACE_TABLE``; ties go to the lower axis.
     """
     ax, ay, az = abs(x), abs(y), abs(z)
     if ax >= ay and ax >= az:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render import grazing as gz
 from core.render import orientation as ori
 from core.render.gaussians import Gaussians
@@ -32,7 +33,7 @@ def view_opacity_scale(
         return None
     n = (gaussians.normals() if normals is None else normals).detach()
     if compiled is None:
-        compiled = n.device.type == "cpu" and n.dtype in (torch.float32, torch.float64)
+        compiled = cpu_float(n)
     if compiled:
         return _compiled(gaussians, camera, n, cull_on, fade_on)
     cull = ori.facing(gaussians, camera, n) if cull_on else None

@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from core.evaluation.ssim import ssim
+from core.kernels.dispatch import cpu_float
 from core.render.depth_geometry import (
     bilinear_lookup,
     normals_from_depth,
@@ -79,7 +80,7 @@ def single_view_loss(
     tensors), False: the torch ops below, the reference."""
     ratio = SAME_SURFACE_JUMP_RATIO if same_surface else None
     if compiled is None:
-        compiled = depth.device.type == "cpu" and depth.dtype in (torch.float32, torch.float64)
+        compiled = cpu_float(depth)
     if compiled:
         from core.training.depth_normal_compiled import single_view_loss_compiled
 
@@ -137,7 +138,7 @@ def multi_view_loss(
     if idx.numel() == 0:
         return zero, {"pixels": 0.0, "kept": 0.0}
     if compiled is None:
-        compiled = device.type == "cpu" and dtype in (torch.float32, torch.float64)
+        compiled = cpu_float(depth_ref)
     if compiled:
         from core.training.multi_view_compiled import multi_view_loss_compiled
 

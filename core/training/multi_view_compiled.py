@@ -28,24 +28,37 @@ from core.scene.cameras import Camera
 __all__ = ["multi_view_loss_compiled"]
 
 # per pixel state kept for the backward
-_S_OK, _S_E, _S_UN, _S_VN, _S_DN, _S_X0, _S_Y0 = range(7)
-_N_STATE = 7
+_S_OK, _S_E, _S_UN, _S_VN, _S_DN = range(5)
+_N_STATE = 5
+
+
+@njit(nogil=True, cache=True)
+def _rot(R, x, y, z):  # pragma: no cover - numba
+    """R v."""
+    return (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z,
+            R[1, 0] * x + R[1, 1] * y + R[1, 2] * z,
+            R[2, 0] * x + R[2, 1] * y + R[2, 2] * z)  # fmt: skip
+
+
+@njit(nogil=True, cache=True)
+def _rot_t(R, x, y, z):  # pragma: no cover - numba
+    """Rᵀ v."""
+    return (R[0, 0] * x + R[1, 0] * y + R[2, 0] * z,
+            R[0, 1] * x + R[1, 1] * y + R[2, 1] * z,
+            R[0, 2] * x + R[1, 2] * y + R[2, 2] * z)  # fmt: skip
 
 
 @njit(nogil=True, cache=True)
 def _to_cam(R, t, x, y, z):  # pragma: no cover - numba
-    return (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z + t[0],
-            R[1, 0] * x + R[1, 1] * y + R[1, 2] * z + t[1],
-            R[2, 0] * x + R[2, 1] * y + R[2, 2] * z + t[2])  # fmt: skip
+    """R p + t."""
+    a, b, c = _rot(R, x, y, z)
+    return a + t[0], b + t[1], c + t[2]
 
 
 @njit(nogil=True, cache=True)
 def _to_world(R, t, x, y, z):  # pragma: no cover - numba
     """Rᵀ (p − t)."""
-    x, y, z = x - t[0], y - t[1], z - t[2]
-    return (R[0, 0] * x + R[1, 0] * y + R[2, 0] * z,
-            R[0, 1] * x + R[1, 1] * y + R[2, 1] * z,
-            R[0, 2] * x + R[1, 2] * y + R[2, 2] * z)  # fmt: skip
+    return _rot_t(R, x - t[0], y - t[1], z - t[2])
 
 
 @njit(nogil=True, cache=True)
@@ -58,26 +71,28 @@ def _in_front(x, y, z):  # pragma: no cover - numba
 
 @njit(nogil=True, cache=True)
 def _taps(img, u, v):  # pragma: no cover - numba
-    """``bilinear_lookup`` at pixel coordinates (u, v): (value, inside, x0, y0, fx, fy)."""
+    """``bilinear_lookup`` at pixel coordinates (u, v): (value, inside, x0, y0, x1, y1,
+    fx, fy); the far taps (x1, y1) stay in the image for a 1-px wide or high one."""
     h, w = img.shape
     x, y = u - 0.5, v - 0.5
     if not (math.isfinite(x) and math.isfinite(y)):
-        return 0.0, False, 0, 0, 0.0, 0.0
+        return 0.0, False, 0, 0, 0, 0, 0.0, 0.0
     inside = x >= 0.0 and y >= 0.0 and x <= w - 1 and y <= h - 1
     x0 = int(min(max(math.floor(x), 0.0), max(w - 2, 0)))
     y0 = int(min(max(math.floor(y), 0.0), max(h - 2, 0)))
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
     fx = min(max(x - x0, 0.0), 1.0)
     fy = min(max(y - y0, 0.0), 1.0)
-    v00, v01 = np.float64(img[y0, x0]), np.float64(img[y0, x0 + 1])
-    v10, v11 = np.float64(img[y0 + 1, x0]), np.float64(img[y0 + 1, x0 + 1])
+    v00, v01 = np.float64(img[y0, x0]), np.float64(img[y0, x1])
+    v10, v11 = np.float64(img[y1, x0]), np.float64(img[y1, x1])
     val = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
-    return val, inside, x0, y0, fx, fy
+    return val, inside, x0, y0, x1, y1, fx, fy
 
 
 @njit(nogil=True, cache=True)
 def _forward(idx, d_ref, d_nb, v_nb, Rr, tr, kr, Rn, tn, kn, max_err, state):  # pragma: no cover
-    """Round trip of every selected pixel: ``state`` rows (ok, error, u_n, v_n, d_n, x0,
-    y0); returns (sum of errors, sum of exp(−error)·error, kept)."""
+    """Round trip of every selected pixel: ``state`` rows (ok, error, u_n, v_n, d_n);
+    returns (sum of errors, sum of exp(−error)·error, kept)."""
     w = d_ref.shape[1]
     fxr, fyr, cxr, cyr = kr[0], kr[1], kr[2], kr[3]
     fxn, fyn, cxn, cyn = kn[0], kn[1], kn[2], kn[3]
@@ -92,8 +107,8 @@ def _forward(idx, d_ref, d_nb, v_nb, Rr, tr, kr, Rn, tn, kn, max_err, state):  #
         if not _in_front(cx, cy, cz):
             continue
         un, vn = fxn * cx / cz + cxn, fyn * cy / cz + cyn
-        dn, inside, x0, y0, _, _ = _taps(d_nb, un, vn)
-        ok_v, _, _, _, _, _ = _taps(v_nb, un, vn)
+        dn, inside, _, _, _, _, _, _ = _taps(d_nb, un, vn)
+        ok_v, _, _, _, _, _, _, _ = _taps(v_nb, un, vn)
         if not (inside and cz > 0.0 and ok_v > 0.999 and dn > 0.0):
             continue
         X2, Y2, Z2 = _to_world(Rn, tn, (un - cxn) / fxn * dn, (vn - cyn) / fyn * dn, dn)
@@ -107,7 +122,6 @@ def _forward(idx, d_ref, d_nb, v_nb, Rr, tr, kr, Rn, tn, kn, max_err, state):  #
         state[m, _S_OK] = 1.0
         state[m, _S_E] = e
         state[m, _S_UN], state[m, _S_VN], state[m, _S_DN] = un, vn, dn
-        state[m, _S_X0], state[m, _S_Y0] = x0, y0
         total += e
         total_w += math.exp(-e) * e
         kept += 1
@@ -135,7 +149,6 @@ def _backward_part(
         dr = np.float64(d_ref[p // w, p % w])
         e = state[m, _S_E]
         un, vn, dn = state[m, _S_UN], state[m, _S_VN], state[m, _S_DN]
-        x0, y0 = int(state[m, _S_X0]), int(state[m, _S_Y0])
         g_e = scale * (math.exp(-e) if weighted else 1.0)
         # forward quantities again
         rxn, ryn = (un - cxn) / fxn, (vn - cyn) / fyn
@@ -148,21 +161,20 @@ def _backward_part(
         gbx, gby = gub * fxr / bz, gvb * fyr / bz
         gbz = -(gub * fxr * bx + gvb * fyr * by) / (bz * bz)
         # b = Rr P2 + tr: g_P2 = Rrᵀ g_b
-        gX2, gY2, gZ2 = _to_world(Rr, np.zeros(3), gbx, gby, gbz)
+        gX2, gY2, gZ2 = _rot_t(Rr, gbx, gby, gbz)
         # P2 = Rnᵀ (q − tn): g_q = Rn g_P2
-        gqx, gqy, gqz = _to_cam(Rn, np.zeros(3), gX2, gY2, gZ2)
+        gqx, gqy, gqz = _rot(Rn, gX2, gY2, gZ2)
         g_un = gqx * dn / fxn
         g_vn = gqy * dn / fyn
         g_dn = gqx * rxn + gqy * ryn + gqz
         # d_n = bilinear(d_nb, u_n, v_n)
-        fx = min(max(un - 0.5 - x0, 0.0), 1.0)
-        fy = min(max(vn - 0.5 - y0, 0.0), 1.0)
-        v00, v01 = np.float64(d_nb[y0, x0]), np.float64(d_nb[y0, x0 + 1])
-        v10, v11 = np.float64(d_nb[y0 + 1, x0]), np.float64(d_nb[y0 + 1, x0 + 1])
+        _, _, x0, y0, x1, y1, fx, fy = _taps(d_nb, un, vn)
+        v00, v01 = np.float64(d_nb[y0, x0]), np.float64(d_nb[y0, x1])
+        v10, v11 = np.float64(d_nb[y1, x0]), np.float64(d_nb[y1, x1])
         gn[y0, x0] += g_dn * (1 - fx) * (1 - fy)
-        gn[y0, x0 + 1] += g_dn * fx * (1 - fy)
-        gn[y0 + 1, x0] += g_dn * (1 - fx) * fy
-        gn[y0 + 1, x0 + 1] += g_dn * fx * fy
+        gn[y0, x1] += g_dn * fx * (1 - fy)
+        gn[y1, x0] += g_dn * (1 - fx) * fy
+        gn[y1, x1] += g_dn * fx * fy
         g_un += g_dn * ((v01 - v00) * (1 - fy) + (v11 - v10) * fy)
         g_vn += g_dn * ((v10 * (1 - fx) + v11 * fx) - (v00 * (1 - fx) + v01 * fx))
         # uv_n = proj_nb(c), c = Rn P + tn
@@ -170,9 +182,9 @@ def _backward_part(
         cx, cy, cz = _to_cam(Rn, tn, X, Y, Z)
         gcx, gcy = g_un * fxn / cz, g_vn * fyn / cz
         gcz = -(g_un * fxn * cx + g_vn * fyn * cy) / (cz * cz)
-        gX, gY, gZ = _to_world(Rn, np.zeros(3), gcx, gcy, gcz)
+        gX, gY, gZ = _rot_t(Rn, gcx, gcy, gcz)
         # P = Rrᵀ (d r_r − tr): g_d = (Rr g_P) · r_r
-        gqx, gqy, gqz = _to_cam(Rr, np.zeros(3), gX, gY, gZ)
+        gqx, gqy, gqz = _rot(Rr, gX, gY, gZ)
         g_ref[p // w, p % w] = gqx * (ur - cxr) / fxr + gqy * (vr - cyr) / fyr + gqz
 
 
