@@ -159,10 +159,15 @@ def trip(redis_bin: str, device: str, root: Path) -> dict:
         } <= set(names)
         if not ok:
             raise RuntimeError(f"job {final['state']}: {final.get('error')}; artifacts {names}")
+        # the job's own config says what was submitted; the run's says where it trained
+        trained = c.get(f"/v1/jobs/{job['id']}/artifacts/config.json").json()["device"]
+        if trained != device:
+            raise RuntimeError(f"the worker runs on {device}, but the job trained on {trained}")
         return {
             "job": final["id"],
             "state": final["state"],
-            "device": final["config"]["device"],
+            "submitted_device": final["config"].get("device", "cpu"),
+            "trained_device": trained,
             "worker": workers[0]["id"] if workers else None,
             "artifacts": len(names),
             "seconds": round(time.perf_counter() - t0, 1),

@@ -34,9 +34,11 @@ import tempfile
 import time
 from bisect import bisect_right
 from collections import defaultdict
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
 from core.cli import _parse_overrides as parse_overrides
@@ -165,7 +167,8 @@ def markdown(rows: list[dict[str, Any]], head: dict[str, Any]) -> str:
     out = [
         f"Step breakdown: {head['scene']} ({head['width']}x{head['height']}), phase "
         f"{head['phase']}, {head['gaussians']} Gaussians, {head['steps']} steps, "
-        f"{head['threads']} kernel threads; step {head['step_ms']:.1f} ms unprofiled "
+        f"{head['threads']} kernel threads, device {head.get('device', 'cpu')}; "
+        f"step {head['step_ms']:.1f} ms unprofiled "
         f"(median), {head['profiled_ms']:.1f} ms under the profiler.",
         "",
         "| stage | forward ms | backward ms | total ms | share |",
@@ -199,15 +202,26 @@ def _trainer(args: argparse.Namespace, out: Path) -> Trainer:
     return trainer
 
 
+def _synchronizer(trainer: Trainer) -> Callable[[], None]:
+    """Waits for the device's queue, so a GPU step is timed to its end, not its launch."""
+    device = torch.device(trainer.device)
+    if device.type == "cuda":
+        return lambda: torch.cuda.synchronize(device)
+    return lambda: None
+
+
 def measure(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[str, Any]]:
     with tempfile.TemporaryDirectory(prefix="glint-breakdown-") as tmp:
         trainer = _trainer(args, Path(tmp) / "run")
         for _ in range(args.warmup):
             trainer.step()
+        sync = _synchronizer(trainer)
         plain = []
         for _ in range(args.steps):
+            sync()
             t0 = time.perf_counter()
             trainer.step()
+            sync()
             plain.append(time.perf_counter() - t0)
         with profile(activities=[ProfilerActivity.CPU]) as prof:
             for _ in range(args.steps):
@@ -226,6 +240,7 @@ def measure(args: argparse.Namespace) -> tuple[list[dict[str, Any]], dict[str, A
             "gaussians": trainer.gaussians.num,
             "steps": args.steps,
             "threads": args.threads,
+            "device": str(trainer.device),
             "step_ms": 1000 * statistics.median(plain),
             "profiled_ms": 1000 * profiled,
         }
