@@ -9,6 +9,7 @@ import torch
 
 from core.evaluation.ssim import ssim, ssim_reference
 from core.render.depth_geometry import bilinear_lookup, normals_from_depth
+from core.render.gbuffer import planar_depth
 from core.scene.cameras import Camera, Intrinsics
 from core.training.losses import (
     edge_weight,
@@ -295,3 +296,26 @@ def test_facing_view_by_angle_to_the_pixel_ray():
     assert not facing_view(tilted(90.0), cam).any()
     assert not facing_view(torch.zeros(8, 8, 3, dtype=torch.float64), cam).any()
     assert facing_view(tilted(70.0), cam, max_deg=75.0).all()
+
+
+def test_single_view_loss_on_eq8_depth_cannot_see_a_wrong_normal():
+    """Eq. 8 puts every pixel's depth on the plane (N, D) it was computed from, so with
+    N and D constant over the image the depth-derived normals are N itself and L_single
+    is zero, however wrong N is: on the planar depth L_single is a smoothness prior on
+    (N, D), not a check of N against the splats' centres. The same wrong N against the
+    depth of the true surface costs 1 − cos (docs/benchmarks.md, issue 36: handing
+    L_single the centre depth instead did not improve the normals)."""
+    cam = identity_camera(24)
+    true_n = torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64)
+    wrong_n = rotmat_y(30.0) @ true_n
+    centre = torch.tensor([0.0, 0.0, 3.0], dtype=torch.float64)
+    valid = torch.ones(24, 24, dtype=torch.bool)
+    rendered = wrong_n.expand(24, 24, 3)
+    eq8 = planar_depth(
+        rendered, torch.full((24, 24), float(wrong_n @ centre), dtype=torch.float64),
+        torch.ones(24, 24, dtype=torch.float64), cam, compiled=False,
+    )[0]  # fmt: skip
+    assert single_view_loss(rendered, eq8, valid, cam).item() < 1e-12
+    surface = _plane_depth(cam, true_n, centre)
+    expected = 1.0 - math.cos(math.radians(30.0))
+    assert abs(single_view_loss(rendered, surface, valid, cam).item() - expected) < 1e-9
