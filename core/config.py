@@ -188,6 +188,13 @@ class Ablation(_Strict):
         "True: only pixels whose surface faces the view within 60° (Eq. 8's depth is "
         "ill-conditioned edge-on; core/render/depth_geometry.py)",
     )
+    silhouette_holds_normals: bool = Field(
+        True,
+        description="True: the silhouette term's gradient moves the splats and their "
+        "blending but never turns their normals (it knows where the surface is, not how "
+        "it is oriented; four more G-buffer channels in its phases); False: through Eq. "
+        "8's full gradient, which tilts the normals the deferred shading reflects with",
+    )
     roughness: bool = Field(
         True,
         description="False: every splat reflects one direction (the paper's Eq. 9, a mirror "

@@ -188,3 +188,31 @@ def test_a_geometry_only_pass_is_the_full_pass_without_colour(backend):
     assert set(g_geo) <= set(g_full)  # colour parameters get no gradient
     for k, v in g_geo.items():  # float32 sums in another order: rounding only
         torch.testing.assert_close(v, g_full[k], rtol=1e-3, atol=1e-5, msg=k)
+
+
+def test_held_normal_depth_moves_the_plane_and_never_turns_it():
+    """``held_plane``: the same Eq. 8 depth, whose gradient reaches the centre along the
+    normal and neither the normal nor the opacity. For one splat d = n·μ / (n·r̃), so
+    ∂d/∂μ = n / (n·r̃) per pixel, and n·μ does not depend on how opaque it is."""
+    dtype = torch.float64
+    cam = identity_camera(32)
+    means, quats, scales, op, colors, normal, w_r = _flat_gaussian(30.0, dtype)
+    for t in (means, op, normal):
+        t.requires_grad_(True)
+    gb, _ = render_gbuffer_tensors(
+        means, quats, scales, op, colors, normal, w_r, cam, backend="reference", held_plane=True
+    )
+    v = gb.depth_valid
+    assert v.sum() > 50
+    torch.testing.assert_close(gb.depth_normals_held[v], gb.depth[v], rtol=1e-12, atol=1e-12)
+    g_means, g_op, g_normal = torch.autograd.grad(
+        gb.depth_normals_held[v].sum(), (means, op, normal), allow_unused=True, retain_graph=True
+    )
+    assert g_normal is None or torch.count_nonzero(g_normal) == 0
+    assert g_op is None or g_op.abs().max() < 1e-12
+    n_cam = -normal.detach()[0]  # facing the camera
+    expected = (n_cam / (cam.camera_rays(dtype)[v] @ n_cam)[:, None]).sum(0)
+    torch.testing.assert_close(g_means[0], expected, rtol=1e-9, atol=1e-9)
+    # the plain depth's gradient does turn the normal
+    (g_plain,) = torch.autograd.grad(gb.depth[v].sum(), (normal,))
+    assert g_plain.abs().max() > 1e-3

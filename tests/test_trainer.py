@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 
 import pytest
@@ -245,3 +246,46 @@ def test_depth_losses_use_only_pixels_facing_the_view(tiny_scene, tmp_path, monk
             assert not bool((valid & ~faces).any())
     # a sphere always shows a rim seen edge-on: the switch has something to leave out
     assert (grazing == 0) if facing else (grazing > 0)
+
+
+@pytest.mark.parametrize("held", [True, False])
+def test_silhouette_term_reads_the_planar_depth_with_normals_held(
+    tiny_scene, tmp_path, monkeypatch, held
+):
+    """ablation.silhouette_holds_normals: the silhouette term gets Eq. 8's depth values
+    through the held-normal channels (its gradient cannot turn a splat), L_single the
+    plain one; switched off, both read the very same tensor."""
+    import core.training.trainer as tr
+
+    seen: list[tuple] = []
+    real = tr.single_view_loss
+
+    def single(normal, depth, valid, camera, weight=None, **kw):
+        seen.append(("single", depth))
+        return real(normal, depth, valid, camera, weight, **kw)
+
+    monkeypatch.setattr(tr, "single_view_loss", single)
+    cfg = config_from_dict({
+        **TINY, "iterations": 40, "ablation": {"silhouette_holds_normals": held},
+    })  # fmt: skip
+    t = Trainer(tiny_scene, cfg, tmp_path)
+    t.setup(resume=False)
+    assert t.silhouette is not None
+    real_sil = t.silhouette.__call__
+
+    class Spy:
+        def __call__(self, vi, camera, depth, valid):
+            seen.append(("silhouette", depth))
+            return real_sil(vi, camera, depth, valid)
+
+    t.silhouette = Spy()
+    t.train()
+    pairs = [
+        (a[1], b[1])
+        for a, b in itertools.pairwise(seen)
+        if (a[0], b[0]) == ("single", "silhouette")
+    ]
+    assert pairs
+    for plain, sil in pairs:
+        torch.testing.assert_close(sil, plain, rtol=1e-5, atol=1e-6)
+        assert (sil is plain) != held

@@ -24,6 +24,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "no_roughness": {"roughness": False},
     "central_normals": {"same_surface_normals": False},
     "all_angles": {"facing_depth": False},
+    "sil_turns_normals": {"silhouette_holds_normals": False},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -55,6 +56,7 @@ LABELS = {
     "no_roughness": "w/o roughness (mirror env-map lookups, Eq. 9)",
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
+    "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, same-surface depth normals, facing-only depth losses)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
@@ -72,6 +74,7 @@ TABLE_ORDER = (
     "no_roughness",
     "central_normals",
     "all_angles",
+    "sil_turns_normals",
     "paper",
     "full",
 )

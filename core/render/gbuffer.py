@@ -69,6 +69,8 @@ class GBuffer:
     camera: Camera
     z_blend: Tensor | None = None
     roughness: Tensor | None = None
+    normal_held: Tensor | None = None
+    plane_dist_held: Tensor | None = None
     min_alpha: float = MIN_ALPHA
     min_cos: float = MIN_COS
 
@@ -86,6 +88,22 @@ class GBuffer:
     @property
     def depth(self) -> Tensor:
         return self._planar[0]
+
+    @cached_property
+    def depth_normals_held(self) -> Tensor:
+        """Eq. 8's depth, same values as ``depth``, whose gradient moves the splats'
+        planes along their normals and never turns them (see ``held_plane`` in
+        :func:`render_gbuffer_tensors`)."""
+        if self.normal_held is None or self.plane_dist_held is None:
+            raise ValueError("this G-buffer has no held-normal plane distance (held_plane=False)")
+        return planar_depth(
+            self.normal_held,
+            self.plane_dist_held,
+            self.alpha,
+            self.camera,
+            min_alpha=self.min_alpha,
+            min_cos=self.min_cos,
+        )[0]
 
     @property
     def depth_valid(self) -> Tensor:
@@ -227,6 +245,7 @@ def render_gbuffer_tensors(
     antialiased: bool = False,
     lowpass: float = 0.3,
     roughness: Tensor | None = None,
+    held_plane: bool = False,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -239,6 +258,14 @@ def render_gbuffer_tensors(
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
     screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
+
+    ``held_plane`` splats four more channels, last: the normal and D again, n̄ and n̄·μ
+    with the splats' normals detached (``GBuffer.normal_held``, ``plane_dist_held``). A
+    loss that should move the surface without turning it reads Eq. 8 through them: its
+    gradient reaches each centre along its normal and the blending weights by how far
+    each splat's plane is from the pixel's point. Detaching the blended N or D instead
+    breaks that balance (D = n·μ alone varies by |μ| with a splat's orientation), and
+    training collapsed each way it was tried (docs/benchmarks.md, issue 36).
     """
     geometry_only = colors is None
     with stage("features"):
@@ -246,6 +273,10 @@ def render_gbuffer_tensors(
             feats = geometry_features(means, normals_world, camera)
         else:
             feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
+        if held_plane and not geometry_only:
+            n_held, _, mu_cam = _facing_planes(means, normals_world.detach(), camera)
+            d_held = (n_held * mu_cam).sum(-1, keepdim=True)
+            feats = torch.cat([feats, n_held, d_held], dim=-1)
     if near is None:
         near = near_plane(feats[:, _G_Z if geometry_only else _C_Z])
     res = rasterize(
@@ -280,6 +311,8 @@ def render_gbuffer_tensors(
         camera=camera,
         z_blend=z,
         roughness=rough,
+        normal_held=f[..., -4:-1] if held_plane and not geometry_only else None,
+        plane_dist_held=f[..., -1] if held_plane and not geometry_only else None,
         min_alpha=min_alpha,
         min_cos=min_cos,
     )

@@ -118,6 +118,7 @@ def forward_view(
     absgrad: bool = False,
     opacity_scale: Tensor | None = None,
     normals: Tensor | None = None,
+    held_plane: bool = False,
 ) -> tuple[GBuffer, ShadeResult, Any]:
     """The training forward pass of one view: G-buffer + deferred shading for ``phase``
     (with gradients; readers of a trained model use ``TrainedModel.render``)."""
@@ -126,6 +127,7 @@ def forward_view(
             gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
             antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
             normals=normals, with_roughness=phase.envmap and envmap is not None,
+            held_plane=held_plane,
         )  # fmt: skip
     with stage("deferred_shading"):
         shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
@@ -392,6 +394,16 @@ class Trainer:
                     ratios.append(p.grad.detach().abs().amax().float() / limit)
         return ratios
 
+    def _silhouette_holds_normals(self, phase: Phase) -> bool:
+        """Whether this step's silhouette term reads Eq. 8 with the normals held
+        (``Ablation.silhouette_holds_normals``; the Eq. 5 ablation has no planes)."""
+        return (
+            self.cfg.ablation.silhouette_holds_normals
+            and phase.silhouette
+            and phase.planar_depth
+            and self.silhouette is not None
+        )
+
     def step(self) -> dict[str, float]:
         # ``stage`` labels (torch profiler ranges, ~µs each) let bench/step_breakdown.py
         # say where a step's time goes, forward and backward.
@@ -411,6 +423,7 @@ class Trainer:
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
             absgrad=cfg.densify.absgrad, opacity_scale=cull, normals=normals,
+            held_plane=self._silhouette_holds_normals(phase),
         )  # fmt: skip
         self.strategy.step_pre_backward(res)
         with stage("rgb_loss"):
@@ -441,8 +454,11 @@ class Trainer:
                 )  # fmt: skip
         if phase.silhouette and self.silhouette is not None:
             with stage("silhouette_loss"):
+                sil_depth = depth
+                if self._silhouette_holds_normals(phase):
+                    sil_depth = gb.depth_normals_held  # the same values
                 terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
-                    vi, view.camera, depth, sil_valid
+                    vi, view.camera, sil_depth, sil_valid
                 )
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
