@@ -74,16 +74,15 @@ class GBuffer:
     min_alpha: float = MIN_ALPHA
     min_cos: float = MIN_COS
 
+    def _eq8(self, normal: Tensor, plane_dist: Tensor) -> tuple[Tensor, Tensor]:
+        return planar_depth(
+            normal, plane_dist, self.alpha, self.camera, min_alpha=self.min_alpha,
+            min_cos=self.min_cos,
+        )  # fmt: skip
+
     @cached_property
     def _planar(self) -> tuple[Tensor, Tensor]:
-        return planar_depth(
-            self.normal,
-            self.plane_dist,
-            self.alpha,
-            self.camera,
-            min_alpha=self.min_alpha,
-            min_cos=self.min_cos,
-        )
+        return self._eq8(self.normal, self.plane_dist)
 
     @property
     def depth(self) -> Tensor:
@@ -96,14 +95,7 @@ class GBuffer:
         :func:`render_gbuffer_tensors`)."""
         if self.normal_held is None or self.plane_dist_held is None:
             raise ValueError("this G-buffer has no held-normal plane distance (held_plane=False)")
-        return planar_depth(
-            self.normal_held,
-            self.plane_dist_held,
-            self.alpha,
-            self.camera,
-            min_alpha=self.min_alpha,
-            min_cos=self.min_cos,
-        )[0]
+        return self._eq8(self.normal_held, self.plane_dist_held)[0]
 
     @property
     def depth_valid(self) -> Tensor:
