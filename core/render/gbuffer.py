@@ -260,12 +260,13 @@ def render_gbuffer_tensors(
     training collapsed each way it was tried (docs/benchmarks.md, issue 36).
     """
     geometry_only = colors is None
+    held = held_plane and not geometry_only
     with stage("features"):
         if geometry_only:
             feats = geometry_features(means, normals_world, camera)
         else:
             feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
-        if held_plane and not geometry_only:
+        if held:
             n_held, _, mu_cam = _facing_planes(means, normals_world.detach(), camera)
             d_held = (n_held * mu_cam).sum(-1, keepdim=True)
             feats = torch.cat([feats, n_held, d_held], dim=-1)
@@ -303,8 +304,8 @@ def render_gbuffer_tensors(
         camera=camera,
         z_blend=z,
         roughness=rough,
-        normal_held=f[..., -4:-1] if held_plane and not geometry_only else None,
-        plane_dist_held=f[..., -1] if held_plane and not geometry_only else None,
+        normal_held=f[..., -4:-1] if held else None,
+        plane_dist_held=f[..., -1] if held else None,
         min_alpha=min_alpha,
         min_cos=min_cos,
     )

@@ -394,16 +394,6 @@ class Trainer:
                     ratios.append(p.grad.detach().abs().amax().float() / limit)
         return ratios
 
-    def _silhouette_holds_normals(self, phase: Phase) -> bool:
-        """Whether this step's silhouette term reads Eq. 8 with the normals held
-        (``Ablation.silhouette_holds_normals``; the Eq. 5 ablation has no planes)."""
-        return (
-            self.cfg.ablation.silhouette_holds_normals
-            and phase.silhouette
-            and phase.planar_depth
-            and self.silhouette is not None
-        )
-
     def step(self) -> dict[str, float]:
         # ``stage`` labels (torch profiler ranges, ~µs each) let bench/step_breakdown.py
         # say where a step's time goes, forward and backward.
@@ -413,6 +403,10 @@ class Trainer:
         vi = self._next_view()
         view = self._targets[vi]
         bg = background_color(cfg, self.device, self.gen)
+        # the silhouette term reads Eq. 8 through the held-normal channels
+        # (Ablation.silhouette_holds_normals; the Eq. 5 ablation has no planes)
+        sil_on = phase.silhouette and self.silhouette is not None
+        hold_normals = sil_on and phase.planar_depth and cfg.ablation.silhouette_holds_normals
         with stage("normals"):  # once per step: both views and their opacity factors
             normals = self.gaussians.normals()
         with stage("view_opacity"):
@@ -423,7 +417,7 @@ class Trainer:
         gb, shade, res = forward_view(
             self.gaussians, self.envmap, view.camera, phase, bg, cfg.backend,
             absgrad=cfg.densify.absgrad, opacity_scale=cull, normals=normals,
-            held_plane=self._silhouette_holds_normals(phase),
+            held_plane=hold_normals,
         )  # fmt: skip
         self.strategy.step_pre_backward(res)
         with stage("rgb_loss"):
@@ -452,11 +446,9 @@ class Trainer:
                     gb.normal, depth, valid, view.camera, weight,
                     same_surface=cfg.ablation.same_surface_normals,
                 )  # fmt: skip
-        if phase.silhouette and self.silhouette is not None:
+        if sil_on:
             with stage("silhouette_loss"):
-                sil_depth = depth
-                if self._silhouette_holds_normals(phase):
-                    sil_depth = gb.depth_normals_held  # the same values
+                sil_depth = gb.depth_normals_held if hold_normals else depth  # same values
                 terms["silhouette"] = cfg.loss.silhouette * self.silhouette(
                     vi, view.camera, sil_depth, sil_valid
                 )
