@@ -13,5 +13,12 @@ python -m pip install -q --upgrade pip >/dev/null
 if ! python -c "import torch" 2>/dev/null; then
     python -m pip install -q "torch==${BOOTSTRAP_TORCH_VERSION:-2.13.0}"
 fi
-# the HTTP client (client/, distribution glint-client) adds `glint remote` to `glint`
-python -m pip install -q -e ".[dev]" -e ./client
+# the HTTP client (client/, distribution glint-client) adds `glint remote` to `glint`.
+# uv resolves and installs the rest in seconds where pip takes a minute (it keeps the torch installed above,
+# whose version every range admits); pip is the fallback wherever uv cannot be installed or fails.
+if python -m pip install -q uv >/dev/null 2>&1 && python -m uv pip install -q -e ".[dev]" -e ./client; then
+    :
+else
+    echo "bootstrap: uv unavailable or failed; installing with pip" >&2
+    python -m pip install -q -e ".[dev]" -e ./client
+fi
