@@ -10,14 +10,20 @@ CD = (d(P→G) + d(G→P)) / 2 says how wrong a mesh is, not where. This splits 
   a large mean says local faults;
 - both directions over the true surface split into **creases** (true normals within
   ``--crease-radius`` differ by more than ``--crease-deg``), **flat/smooth** parts and
-  parts **no training view saw**.
+  parts **no training view saw**;
+- and by **concavity**: how deep each true point lies inside the convex hull of the
+  true surface (0 on the hull; a visual hull cannot see deeper than that, so this is
+  where only shading and multi-view terms can put the surface). With ``--run``, the
+  same bins for the run's rendered depth on the test views (signed, − = in front of the
+  truth), which says whether the splats or the mesh fusion put a surface there.
 
-    python -m bench.cd_breakdown MESH.ply --scene ../shared/data/fandisk_copper
+    python -m bench.cd_breakdown MESH.ply --scene ../shared/data/fandisk_copper [--run RUN]
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 from pathlib import Path
 
@@ -28,6 +34,22 @@ from core.evaluation.geometry import load_gt_points
 from core.evaluation.metrics import sample_surface
 
 TAILS = (0.01, 0.02, 0.05)
+HULL_BINS = (-np.inf, 0.01, 0.05, 0.15, np.inf)  # depth inside the true convex hull
+
+
+def hull_depth(points: np.ndarray, hull_of: np.ndarray) -> np.ndarray:
+    """(N,) distance of each point inside the convex hull of ``hull_of`` to its boundary
+    (negative outside)."""
+    from scipy.spatial import ConvexHull
+
+    eq = ConvexHull(hull_of).equations  # outward normals n and offsets b: n·x + b ≤ 0 inside
+    return -(points @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+
+
+def hull_bin_label(lo: float, hi: float) -> str:
+    if not np.isfinite(lo):
+        return f"< {hi:g}"
+    return f"[{lo:g}, {hi:g})" if np.isfinite(hi) else f">= {lo:g}"
 
 
 def crease_mask(points: np.ndarray, normals: np.ndarray, radius: float, deg: float) -> np.ndarray:
@@ -80,6 +102,9 @@ def breakdown(
             "outside_share": float((signed > 0).mean()),
         },
     }
+    depth_in = hull_depth(G, G)
+    for lo, hi in itertools.pairwise(HULL_BINS):
+        parts[f"hull depth {hull_bin_label(lo, hi)}"] = (depth_in >= lo) & (depth_in < hi)
     for name, m in parts.items():
         pm = m[i_pg]  # mesh points whose nearest true point lies in this part
         out[name] = {
@@ -88,6 +113,46 @@ def breakdown(
             "accuracy_x100": 100 * float(d_pg[pm].mean()) if pm.any() else float("nan"),
             "signed_median_x100": 100 * float(np.median(signed[pm])) if pm.any() else float("nan"),
             "cd_share": float(d_gp[m].sum() + d_pg[pm].sum()) / float(d_gp.sum() + d_pg.sum()),
+        }
+    return out
+
+
+def rendered_depth_by_hull_depth(
+    run: Path, scene_root: Path, gt_points: np.ndarray
+) -> dict[str, dict[str, float]]:
+    """Signed error (rendered − true z-depth) of the run's depth on the test views, over
+    pixels both cover, binned by how deep the true surface point lies in the hull."""
+    import torch
+
+    from core.model.trained import TrainedModel
+    from core.scene.formats import load_scene
+    from core.scene.groundtruth import load_ground_truth
+
+    torch.set_grad_enabled(False)
+    model, scene = TrainedModel.open(run), load_scene(scene_root)
+    errs: list[np.ndarray] = []
+    depths: list[np.ndarray] = []
+    for v in scene.test:
+        gt = load_ground_truth(scene_root, v)
+        if gt is None:
+            continue
+        frame = model.render(v.camera, ("depth",))
+        d, valid = frame.depth()
+        idx = (gt.mask & valid & (frame.gbuffer.alpha > 0.5)).reshape(-1).nonzero()[:, 0]
+        uv = torch.stack([(idx % v.width).double() + 0.5, (idx // v.width).double() + 0.5], -1)
+        z_true = gt.depth.reshape(-1)[idx].double()
+        depths.append(hull_depth(v.camera.backproject(uv, z_true).numpy(), gt_points))
+        errs.append((d.reshape(-1)[idx].double() - z_true).numpy())
+    if not errs:
+        raise SystemExit(f"{scene_root}: no GT depth maps for the test views")
+    e, dep = np.concatenate(errs), np.concatenate(depths)
+    out = {}
+    for lo, hi in itertools.pairwise(HULL_BINS):
+        sel = (dep >= lo) & (dep < hi)
+        out[hull_bin_label(lo, hi)] = {
+            "pixels": int(sel.sum()),
+            "signed_median": float(np.median(e[sel])) if sel.any() else float("nan"),
+            "mean_abs": float(np.abs(e[sel]).mean()) if sel.any() else float("nan"),
         }
     return out
 
@@ -101,6 +166,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--points", type=int, default=200_000, help="points sampled on the mesh")
     ap.add_argument("--crease-radius", type=float, default=0.02)
     ap.add_argument("--crease-deg", type=float, default=30.0)
+    ap.add_argument("--run", type=Path, help="run folder: also bin its rendered test depth")
     args = ap.parse_args(argv)
     import trimesh
 
@@ -110,6 +176,10 @@ def main(argv: list[str] | None = None) -> None:
     mesh = trimesh.load(args.mesh, force="mesh")
     pts, _ = sample_surface(mesh.vertices, mesh.faces, args.points)
     res = breakdown(pts, gt, crease_radius=args.crease_radius, crease_deg=args.crease_deg)
+    if args.run is not None:
+        res["rendered_depth_by_hull_depth"] = rendered_depth_by_hull_depth(
+            args.run, args.scene, gt["points"]
+        )
     print(json.dumps(res, indent=2))
 
 

@@ -79,3 +79,23 @@ def test_crease_mask_marks_the_edges_of_a_box_and_not_its_faces() -> None:
     dist_to_edge = np.sort(0.5 - np.abs(gt["points"]), axis=1)[:, 1]  # 2nd-nearest face
     assert mask[dist_to_edge < 0.02].mean() > 0.95
     assert not mask[dist_to_edge > 0.1].any()
+
+
+def test_hull_depth_is_the_distance_to_the_convex_hull_inside_and_negative_outside() -> None:
+    from bench.cd_breakdown import hull_depth
+
+    corners = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], float)
+    pts = np.array([[0.5, 0.5, 0.5], [0.5, 0.5, 0.9], [0.5, 0.5, 1.2]])
+    np.testing.assert_allclose(hull_depth(pts, corners), [0.5, 0.1, -0.2], atol=1e-12)
+
+
+def test_the_groove_lands_in_the_deeper_hull_bin() -> None:
+    """The groove's floor lies 0.2 inside the convex hull: its truth is what the filled
+    lid misses, while the truth on the hull is covered."""
+    gt = _notched_box_truth(np.random.default_rng(6))
+    full = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    pred, _ = sample_surface(full.vertices, full.faces, 60_000, seed=7)
+    res = breakdown(pred, gt, crease_radius=0.05, crease_deg=30.0)
+    on_hull, floor = res["hull depth < 0.01"], res["hull depth >= 0.15"]
+    assert floor["completeness_x100"] > 10 * on_hull["completeness_x100"]
+    assert floor["completeness_x100"] > 15.0  # the floor is 0.2 below the lid
