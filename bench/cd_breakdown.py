@@ -43,7 +43,11 @@ def hull_depth(points: np.ndarray, hull_of: np.ndarray) -> np.ndarray:
     from scipy.spatial import ConvexHull
 
     eq = ConvexHull(hull_of).equations  # outward normals n and offsets b: n·x + b ≤ 0 inside
-    return -(points @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+    step = max(1, 20_000_000 // len(eq))  # a smooth hull has tens of thousands of facets
+    out = np.empty(len(points))
+    for i in range(0, len(points), step):
+        out[i : i + step] = -(points[i : i + step] @ eq[:, :3].T + eq[:, 3]).max(axis=1)
+    return out
 
 
 def hull_bin_label(lo: float, hi: float) -> str:
