@@ -22,7 +22,7 @@ from core.render.gbuffer import render_gbuffer
 from core.scene.synthetic import SPHERE_RADIUS, make_scene, surface_points
 from core.scene.views import Scene
 from core.training.planner import decide_silhouette, plan_scene
-from core.training.silhouette import SilhouetteDepth, silhouette_points
+from core.training.silhouette import FLOATING_PX, SilhouetteDepth, silhouette_points
 
 
 @pytest.fixture(scope="module")
@@ -138,6 +138,28 @@ def test_silhouette_depth_pulls_the_depth_towards_the_points(loose_sphere: Scene
     # nearer surfaces hide a point: a depth map far in front of every point gives zero
     hidden = loss(3, v.camera, torch.full((v.height, v.width), 0.5), valid)
     assert float(hidden) == 0.0
+
+
+def test_silhouette_depth_lets_go_of_a_surface_far_behind_its_points(loose_sphere: Scene) -> None:
+    """A point more than FLOATING_PX footprints in front of the rendered surface is the
+    middle of a hull chord over a concavity, not a surface that shrank: it pulls nothing.
+    Within the window the loss grows with the gap, as before."""
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    v = loose_sphere.train[3]
+    _, z = v.camera.project(pts.points[loss.per_view[3]])
+    far = float(z.max())  # every used point is in front of a surface at this depth
+    footprint = far / v.camera.intrinsics.fx
+    valid = torch.ones(v.height, v.width, dtype=torch.bool)
+    near_gap = loss(3, v.camera, torch.full((v.height, v.width), far + 0.5 * footprint), valid)
+    assert float(near_gap) > 0.0
+    behind = torch.full((v.height, v.width), far + (FLOATING_PX + 1.0) * footprint)
+    behind.requires_grad_(True)
+    value = loss(3, v.camera, behind, valid)
+    value.backward()
+    assert float(value) == 0.0
+    assert behind.grad is not None and float(behind.grad.abs().sum()) == 0.0
 
 
 def test_no_masks_no_silhouette_points() -> None:
