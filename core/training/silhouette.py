@@ -50,7 +50,7 @@ OCCLUDED_PX = 3.0
 # middle of a hull chord that bridges a concavity (the term corrects sub-pixel shrinking,
 # ~1 px; 19% of fandisk_copper's points lie > 0.02 off the truth, most over concavities,
 # bench.silhouette_error). It lets go of such a surface instead of holding it on the hull;
-# measured on all four scenes of issue 36, CD −0.4% to −3% (docs/benchmarks.md).
+# measured on six rendered scenes, CD −0.4% to −3% on each (docs/benchmarks.md).
 FLOATING_PX = 3.0
 
 
