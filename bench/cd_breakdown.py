@@ -25,12 +25,13 @@ from __future__ import annotations
 import argparse
 import itertools
 import json
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial import cKDTree
 
-from core.evaluation.geometry import load_gt_points
+from core.evaluation.geometry import SURFACE_ALPHA, load_gt_points
 from core.evaluation.metrics import sample_surface
 
 TAILS = (0.01, 0.02, 0.05)
@@ -50,10 +51,14 @@ def hull_depth(points: np.ndarray, hull_of: np.ndarray) -> np.ndarray:
     return out
 
 
-def hull_bin_label(lo: float, hi: float) -> str:
-    if not np.isfinite(lo):
-        return f"< {hi:g}"
-    return f"[{lo:g}, {hi:g})" if np.isfinite(hi) else f">= {lo:g}"
+def hull_bins(depth: np.ndarray) -> Iterator[tuple[str, np.ndarray]]:
+    """(label, mask) of each HULL_BINS bin over ``depth`` (from :func:`hull_depth`)."""
+    for lo, hi in itertools.pairwise(HULL_BINS):
+        if not np.isfinite(lo):
+            label = f"< {hi:g}"
+        else:
+            label = f"[{lo:g}, {hi:g})" if np.isfinite(hi) else f">= {lo:g}"
+        yield label, (depth >= lo) & (depth < hi)
 
 
 def crease_mask(points: np.ndarray, normals: np.ndarray, radius: float, deg: float) -> np.ndarray:
@@ -106,9 +111,8 @@ def breakdown(
             "outside_share": float((signed > 0).mean()),
         },
     }
-    depth_in = hull_depth(G, G)
-    for lo, hi in itertools.pairwise(HULL_BINS):
-        parts[f"hull depth {hull_bin_label(lo, hi)}"] = (depth_in >= lo) & (depth_in < hi)
+    for label, m in hull_bins(hull_depth(G, G)):
+        parts[f"hull depth {label}"] = m
     for name, m in parts.items():
         pm = m[i_pg]  # mesh points whose nearest true point lies in this part
         out[name] = {
@@ -142,7 +146,7 @@ def rendered_depth_by_hull_depth(
             continue
         frame = model.render(v.camera, ("depth",))
         d, valid = frame.depth()
-        idx = (gt.mask & valid & (frame.gbuffer.alpha > 0.5)).reshape(-1).nonzero()[:, 0]
+        idx = (gt.mask & valid & (frame.gbuffer.alpha > SURFACE_ALPHA)).reshape(-1).nonzero()[:, 0]
         uv = torch.stack([(idx % v.width).double() + 0.5, (idx // v.width).double() + 0.5], -1)
         z_true = gt.depth.reshape(-1)[idx].double()
         depths.append(hull_depth(v.camera.backproject(uv, z_true).numpy(), gt_points))
@@ -151,9 +155,8 @@ def rendered_depth_by_hull_depth(
         raise SystemExit(f"{scene_root}: no GT depth maps for the test views")
     e, dep = np.concatenate(errs), np.concatenate(depths)
     out = {}
-    for lo, hi in itertools.pairwise(HULL_BINS):
-        sel = (dep >= lo) & (dep < hi)
-        out[hull_bin_label(lo, hi)] = {
+    for label, sel in hull_bins(dep):
+        out[label] = {
             "pixels": int(sel.sum()),
             "signed_median": float(np.median(e[sel])) if sel.any() else float("nan"),
             "mean_abs": float(np.abs(e[sel]).mean()) if sel.any() else float("nan"),

@@ -48,12 +48,18 @@ def true_cube(truth: TrueEnvmap, resolution: int, supersample: int = SUPERSAMPLE
     return truth.sample(d).reshape(6, r, s, r, s, 3).mean(dim=(2, 4)).float()
 
 
+def material_lod(roughness: float, resolution: int) -> float:
+    """The mip level a roughness ρ reads in a cube of this face size."""
+    rho = torch.tensor(float(roughness))
+    return float(roughness_to_lod(rho, resolution, len(mip_sizes(resolution))))
+
+
 def blurred_cube(texels: torch.Tensor, roughness: float) -> torch.Tensor:
     """The cube read at the LOD ``roughness`` gives, at every texel's own direction."""
     r = texels.shape[1]
-    lod = roughness_to_lod(torch.tensor(float(roughness)), r, len(mip_sizes(r)))
     dirs = texel_directions(r).reshape(-1, 3)
-    out = sample_cube_lod(texels, dirs, lod.expand(dirs.shape[0]), compiled=False)
+    lod = torch.full((dirs.shape[0],), material_lod(roughness, r), dtype=texels.dtype)
+    out = sample_cube_lod(texels, dirs, lod, compiled=False)
     return out.reshape(texels.shape)
 
 
@@ -77,7 +83,7 @@ def scene_ceiling(root: Path, resolutions: list[int]) -> dict[str, object]:
         s = compare_envmaps(env, truth, dirs)["psnr"]
         env.set_texels(blurred_cube(sharp, math.sqrt(alpha)))
         b = compare_envmaps(env, truth, dirs)["psnr"]
-        lod = float(roughness_to_lod(torch.tensor(math.sqrt(alpha)), r, len(mip_sizes(r))))
+        lod = material_lod(math.sqrt(alpha), r)
         rows.append({"resolution": r, "auto": r == auto, "lod": lod, "sharp": s, "blurred": b})
     return {"scene": root.name, "ggx_alpha": alpha, "rows": rows}
 

@@ -216,9 +216,8 @@ class SilhouetteDepth:
         uv, z = uv.to(depth), z.to(depth)
         d, inside = bilinear_lookup(depth, uv)
         covered, _ = bilinear_lookup(valid.to(depth), uv)
-        footprint = z / camera.intrinsics.fx
-        ok = inside & (covered > 0.999) & (d > z - OCCLUDED_PX * footprint)
-        ok = ok & (d < z + FLOATING_PX * footprint)
+        gap = (d - z) / (z / camera.intrinsics.fx)  # in pixel footprints, + = behind
+        ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
         if not bool(ok.any()):
             return zero
-        return ((d - z).abs() / footprint)[ok].mean()
+        return gap.abs()[ok].mean()
