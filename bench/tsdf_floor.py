@@ -3,7 +3,8 @@
 ``glint eval`` fuses the training views' rendered depth into a TSDF (``core.meshing``),
 extracts a mesh and samples it. This script fuses the scene's *true* depth maps
 (``train_gt/``) with the grid and truncation a run's mesh used (its ``mesh.json``) and
-scores the mesh against ``gt_points.ply`` as ``glint eval`` does: what the protocol
+scores the mesh against ``gt_points.ply`` as ``glint eval`` does (observations
+weighted by the true normals' incidence, as the rendered normals weight a run's): what the protocol
 gives a perfect depth. The GT maps are antialiased, so a pixel on an occlusion edge or
 the silhouette holds a mix of two surfaces' depths (fused as is, those pixels build
 skirts: teapot_gold 0.64 instead of 0.37); pixels whose 3×3 neighbourhood leaves the
@@ -29,6 +30,7 @@ from core.meshing.tsdf import (
     DepthFrame,
     extract_mesh,
     fuse_depth_frames,
+    incidence_weight,
     keep_largest_components,
 )
 from core.scene.formats import load_scene
@@ -51,7 +53,9 @@ def gt_frames(scene: Scene, root: Path, jump_px: float) -> list[DepthFrame]:
         spread = F.max_pool2d(d, 3, 1, 1) + F.max_pool2d(-d, 3, 1, 1)
         footprint = gt.depth / float(v.camera.intrinsics.fx)
         valid = valid & (spread[0, 0] < jump_px * footprint)
-        frames.append(DepthFrame(v.camera, gt.depth, valid, mask < MASK_EMPTY, None))
+        normal_cam = gt.normal_world.to(v.camera.R) @ v.camera.R.T
+        weight = incidence_weight(normal_cam, v.camera.camera_rays(normal_cam.dtype))
+        frames.append(DepthFrame(v.camera, gt.depth, valid, mask < MASK_EMPTY, None, weight))
     return frames
 
 

@@ -133,3 +133,75 @@ def test_vertex_colours_interpolate_trilinearly_from_the_band() -> None:
     assert corners_in.sum() > 20 and flat.size == 200
     want = pts / (np.array(grid.shape) - 1)
     np.testing.assert_allclose(got[corners_in], want[corners_in], atol=1e-5)
+
+
+def test_incidence_weight_is_the_cosine_between_ray_and_normal() -> None:
+    from core.meshing.tsdf import MIN_INCIDENCE_WEIGHT, incidence_weight
+
+    rays = torch.tensor([[[0.0, 0.0, 1.0]] * 5])  # (1, 5, 3)
+    c60 = 0.5 * 3**0.5
+    normal = torch.tensor(
+        [[[0.0, 0.0, -2.0], [c60, 0.0, -0.5], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.3, 0.0]]]
+    )
+    got = incidence_weight(normal, rays)[0]
+    # head-on (any length, either side), 60 degrees, edge-on, no normal, edge-on again
+    want = [1.0, 0.5, MIN_INCIDENCE_WEIGHT, MIN_INCIDENCE_WEIGHT, MIN_INCIDENCE_WEIGHT]
+    torch.testing.assert_close(got, torch.tensor(want), atol=1e-6, rtol=0)
+
+
+def test_surface_observations_average_by_their_weight_and_carving_counts_one() -> None:
+    """Voxels on the optical axis of one camera, fused from constant depth maps: each
+    voxel's value is the weighted mean of (d - z) / trunc; a carving view adds +1 with
+    weight 1 whatever its weight map says."""
+    from core.meshing.tsdf import TSDFVolume, VoxelGrid
+    from core.scene.cameras import Camera, Intrinsics
+
+    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                         Intrinsics(8.0, 8.0, 4.0, 4.0, 8, 8))  # fmt: skip
+    grid = VoxelGrid((0.0, 0.0, 1.7), 0.05, (1, 1, 13))  # world z 1.7 .. 2.3: depth 3.3 .. 2.7
+    trunc = 1.0
+    z = 5.0 - grid.centers(torch.arange(grid.count))[:, 2].double()
+
+    def frame(depth: float, weight: float, carve: bool = False) -> DepthFrame:
+        full = torch.full((8, 8), depth)
+        yes, no = torch.ones(8, 8, dtype=torch.bool), torch.zeros(8, 8, dtype=torch.bool)
+        return DepthFrame(cam, full, no if carve else yes, yes if carve else no, None,
+                          torch.full((8, 8), weight))  # fmt: skip
+
+    vol = TSDFVolume(grid, trunc, torch.arange(grid.count))
+    vol.integrate(frame(3.0, 1.0))
+    vol.integrate(frame(3.1, 0.25))
+    want = (1.0 * (3.0 - z) + 0.25 * (3.1 - z)) / 1.25 / trunc
+    torch.testing.assert_close(vol.tsdf.double(), want, atol=1e-5, rtol=0)
+    torch.testing.assert_close(vol.weight, torch.full((13,), 1.25))
+    # the zero crossing sits at the weighted mean depth, 3.02, not the plain mean 3.05
+    assert (vol.tsdf[z < 3.02 - 1e-6] > 0).all() and (vol.tsdf[z > 3.02 + 1e-6] < 0).all()
+
+    vol.integrate(frame(0.0, 0.25, carve=True))  # no surface: the ray is free space
+    torch.testing.assert_close(vol.tsdf.double(), (1.25 * want + 1.0) / 2.25, atol=1e-5, rtol=0)
+    torch.testing.assert_close(vol.weight, torch.full((13,), 2.25))
+
+
+def test_weighting_by_incidence_discounts_depth_errors_at_grazing_angles() -> None:
+    """Depth errors that grow toward the silhouette (as a blurred edge's do) bend the
+    fused sphere less when each observation counts by its cosine to the ray (measured:
+    the mean radius error above the exact depths' drops by ~20%)."""
+    from core.meshing.tsdf import incidence_weight
+
+    err = {}
+    for bias, weighted in ((0.0, False), (0.03, False), (0.03, True)):
+        frames = []
+        for cam in fibonacci_cameras(12, distance=3.0, size=SIZE):
+            r = render_synthetic_view(cam, shape="sphere", kind="diffuse", samples=2)
+            valid = (r.depth > 0) & (r.alpha > 0.5)
+            normal_cam = r.normal.to(cam.R) @ cam.R.T
+            w = incidence_weight(normal_cam, cam.camera_rays(normal_cam.dtype))
+            depth = r.depth + torch.where(valid, (bias * (1 / w - 1)).clamp(max=0.1), 0.0)
+            frames.append(DepthFrame(cam, depth, valid, r.alpha < 0.05, None,
+                                     w if weighted else None))  # fmt: skip
+        vol, _ = fuse_depth_frames(frames, center=torch.zeros(3), radius=2.0, resolution=40)
+        r = np.linalg.norm(extract_mesh(vol).vertices, axis=1)
+        err[bias, weighted] = float(np.abs(r - SPHERE_RADIUS).mean())
+    excess = {w: err[0.03, w] - err[0.0, False] for w in (False, True)}
+    assert excess[False] > 0.1 * SPHERE_RADIUS / 40  # the biased depths do bend the sphere
+    assert excess[True] < 0.85 * excess[False], err

@@ -37,6 +37,7 @@ from core.meshing.tsdf import (
     TSDFVolume,
     extract_mesh,
     fuse_frames,
+    incidence_weight,
     keep_largest_components,
 )
 from core.model.trained import TrainedModel
@@ -64,7 +65,8 @@ def model_depth_frame(
     scale: float = 1.0,
 ) -> DepthFrame:
     """The depth the model uses and, unless ``color`` is None, the surface colour of one
-    view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs."""
+    view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs, with
+    each pixel's incidence weight from the rendered normal."""
     camera = view.camera if scale == 1.0 else view.camera.scaled(scale)
     channels = {"base": ("base", "depth"), "radiance": ("final", "depth"), None: ("depth",)}
     if color not in channels:
@@ -89,7 +91,10 @@ def model_depth_frame(
     elif color == "radiance":  # remove the background the shading composited in
         fill = (1.0 - alpha)[..., None] * bg
         rgb = ((frame.image("final") - fill) / a).clamp(0, 1)
-    return DepthFrame(camera, depth.detach(), valid, empty, None if rgb is None else rgb.detach())
+    rays = camera.camera_rays(depth.dtype, depth.device)
+    weight = incidence_weight(frame.gbuffer.normal.detach(), rays)
+    color_out = None if rgb is None else rgb.detach()
+    return DepthFrame(camera, depth.detach(), valid, empty, color_out, weight)
 
 
 def export_mesh(mesh: trimesh.Trimesh, out_dir: str | Path, stem: str = "mesh") -> list[Path]:
