@@ -182,26 +182,88 @@ def test_surface_observations_average_by_their_weight_and_carving_counts_one() -
     torch.testing.assert_close(vol.weight, torch.full((13,), 2.25))
 
 
-def test_weighting_by_incidence_discounts_depth_errors_at_grazing_angles() -> None:
-    """Depth errors that grow toward the silhouette (as a blurred edge's do) bend the
-    fused sphere less when each observation counts by its cosine to the ray (measured:
-    the mean radius error above the exact depths' drops by ~20%)."""
+def test_weighting_by_incidence_discounts_depth_noise_at_grazing_angles() -> None:
+    """Depth noise whose spread grows as 1/cos toward the silhouette (an error across the
+    pixel seen along the ray) roughens the fused sphere far less when each observation
+    counts by its cosine (measured: the mean radius error above the exact depths' falls
+    to ~15% of the unweighted one)."""
     from core.meshing.tsdf import incidence_weight
 
+    gen = torch.Generator().manual_seed(0)
+    views = []
+    for cam in fibonacci_cameras(12, distance=3.0, size=SIZE):
+        r = render_synthetic_view(cam, shape="sphere", kind="diffuse", samples=2)
+        valid = (r.depth > 0) & (r.alpha > 0.5)
+        normal_cam = r.normal.to(cam.R) @ cam.R.T
+        w = incidence_weight(normal_cam, cam.camera_rays(normal_cam.dtype))
+        noise = 0.01 * torch.randn(r.depth.shape, generator=gen) / w.clamp(min=0.2)
+        views.append((cam, r, valid, w, torch.where(valid, noise, 0.0)))
     err = {}
-    for bias, weighted in ((0.0, False), (0.03, False), (0.03, True)):
+    for noisy, weighted in ((False, False), (True, False), (True, True)):
         frames = []
-        for cam in fibonacci_cameras(12, distance=3.0, size=SIZE):
-            r = render_synthetic_view(cam, shape="sphere", kind="diffuse", samples=2)
-            valid = (r.depth > 0) & (r.alpha > 0.5)
-            normal_cam = r.normal.to(cam.R) @ cam.R.T
-            w = incidence_weight(normal_cam, cam.camera_rays(normal_cam.dtype))
-            depth = r.depth + torch.where(valid, (bias * (1 / w - 1)).clamp(max=0.1), 0.0)
-            frames.append(DepthFrame(cam, depth, valid, r.alpha < 0.05, None,
-                                     w if weighted else None))  # fmt: skip
+        for cam, r, valid, w, noise in views:
+            depth, weight = r.depth + noise * noisy, w if weighted else None
+            frames.append(DepthFrame(cam, depth, valid, r.alpha < 0.05, None, weight))
         vol, _ = fuse_depth_frames(frames, center=torch.zeros(3), radius=2.0, resolution=40)
-        r = np.linalg.norm(extract_mesh(vol).vertices, axis=1)
-        err[bias, weighted] = float(np.abs(r - SPHERE_RADIUS).mean())
-    excess = {w: err[0.03, w] - err[0.0, False] for w in (False, True)}
-    assert excess[False] > 0.1 * SPHERE_RADIUS / 40  # the biased depths do bend the sphere
-    assert excess[True] < 0.85 * excess[False], err
+        radii = np.linalg.norm(extract_mesh(vol).vertices, axis=1)
+        err[noisy, weighted] = float(np.abs(radii - SPHERE_RADIUS).mean())
+    excess = {w: err[True, w] - err[False, False] for w in (False, True)}
+    assert excess[False] > 0.01 * SPHERE_RADIUS / 40  # the noise does roughen the sphere
+    assert excess[True] < 0.5 * excess[False], err
+
+
+def test_depth_edges_mark_jumps_between_surfaces_not_slopes_or_silhouettes() -> None:
+    from core.meshing.tsdf import EDGE_JUMP_PX, depth_edges
+
+    focal = 100.0  # footprint at depth 2: 0.02
+    depth = torch.full((6, 8), 2.0)
+    depth[:, 4:] = 2.0 + 0.02 * (EDGE_JUMP_PX + 1)  # a step just over the jump
+    valid = torch.ones(6, 8, dtype=torch.bool)
+    valid[:, 0] = False  # background on the left: a silhouette, not an edge
+    edges = depth_edges(depth, valid, focal)
+    assert edges[:, 3:5].all() and not edges[:, :3].any() and not edges[:, 5:].any()
+
+    ramp = 2.0 + 0.02 * torch.arange(8.0)[None].expand(6, 8)  # one footprint per pixel
+    assert not depth_edges(ramp, torch.ones(6, 8, dtype=torch.bool), focal).any()
+
+
+def test_observation_weight_is_incidence_times_the_minimum_on_edges() -> None:
+    from core.meshing.tsdf import MIN_INCIDENCE_WEIGHT, observation_weight
+    from core.scene.cameras import Camera, Intrinsics
+
+    cam = Camera.look_at([0.0, 0.0, 5.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0],
+                         Intrinsics(100.0, 100.0, 4.0, 3.0, 8, 6))  # fmt: skip
+    depth = torch.full((6, 8), 5.0)
+    depth[:, 4:] = 6.0  # 20 footprints behind: an occlusion edge at columns 3-4
+    valid = torch.ones(6, 8, dtype=torch.bool)
+    rays = cam.camera_rays()
+    normal = -rays  # every pixel head-on
+    w = observation_weight(depth, valid, normal, cam)
+    torch.testing.assert_close(w[:, [0, 1, 2, 5, 6, 7]], torch.ones(6, 6))
+    torch.testing.assert_close(w[:, 3:5], torch.full((6, 2), MIN_INCIDENCE_WEIGHT))
+
+
+def test_depth_between_pixel_centres_is_bilinear_on_a_surface_and_nearest_at_an_edge() -> None:
+    from core.meshing.tsdf import interpolated_depth
+
+    W, H, focal = 6, 5, 100.0
+    jj, ii = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    plane = 2.0 + 0.01 * ii + 0.005 * jj  # a slanted plane, sampled at pixel centres
+    valid = torch.ones(H * W, dtype=torch.bool)
+    u = torch.tensor([0.5, 1.2, 2.75, 4.9, 0.1, 5.9])
+    v = torch.tensor([0.5, 3.3, 1.6, 4.4, 0.2, 4.9])
+    nearest = (v.floor() * W + u.floor()).long()
+    got = interpolated_depth(plane.reshape(-1), valid, nearest, u, v, W, H, focal)
+    # exact inside the centres' hull; the border half-pixel extrapolates nothing (clamped)
+    want = 2.0 + 0.01 * u.clamp(0.5, W - 0.5) + 0.005 * v.clamp(0.5, H - 0.5)
+    torch.testing.assert_close(got, want, atol=1e-6, rtol=0)
+
+    step = plane.clone()
+    step[:, 3:] += 1.0  # an occlusion edge between columns 2 and 3
+    hole = valid.clone().reshape(H, W)
+    hole[0, 0] = False
+    got = interpolated_depth(step.reshape(-1), hole.reshape(-1), nearest, u, v, W, H, focal)
+    at_edge = torch.tensor([False, False, True, False, True, False])  # (2.75, 1.6), (0.1, 0.2)
+    torch.testing.assert_close(got[at_edge], step.reshape(-1)[nearest][at_edge])
+    inside = (want + (u >= 3).float())[~at_edge]
+    torch.testing.assert_close(got[~at_edge], inside, atol=1e-6, rtol=0)

