@@ -4,7 +4,7 @@ A synthetic model of ~100k flat Gaussians on a sphere (glossy, with an env map) 
 saved as a checkpoint, served by the real viewer stack (uvicorn + WebSocket) and
 driven by a Python client::
 
-    .venv/bin/python -m bench.viewer [--gaussians 100000] [--size 512] [--seconds 6]
+    .venv/bin/python -m bench.viewer [--gaussians 100000] [--size 512] [--seconds 6] [--one-sided]
 
 Prints one JSON object. "moving" streams cameras at 60 Hz along an orbit (the
 server renders the newest, at the resolution its governor picks); "still" asks for
@@ -34,6 +34,7 @@ from core.config import TrainConfig
 from core.kernels.pool import kernel_threads
 from core.kernels.threads import configure_cpu_threads
 from core.model.checkpoint import save_checkpoint
+from core.render import orientation as ori
 from core.render.envmap import EnvMap, texel_directions
 from core.render.gaussians import PARAM_SHAPES, Gaussians, scalar_logit
 from core.render.sh import rgb_to_sh0
@@ -62,7 +63,9 @@ def sphere_model(n: int, seed: int = 0) -> Gaussians:
     return Gaussians(params, sh_degree=0)
 
 
-def write_run(run_dir: Path, n: int) -> Path:
+def write_run(run_dir: Path, n: int, one_sided: bool = False) -> Path:
+    """The checkpoint; ``one_sided`` also records each disc as seen from outside (as
+    training records it), so that the far half is culled in every view."""
     env = EnvMap(64)
     env.set_texels(default_env(texel_directions(64)))
     cfg = TrainConfig(sh_degree=0, envmap_resolution=64)
@@ -71,7 +74,12 @@ def write_run(run_dir: Path, n: int) -> Path:
         "config": cfg.model_dump(mode="json"),
         "envmap": env.state_dict(),
     }
-    return save_checkpoint(run_dir / "checkpoint.pt", sphere_model(n), extra)
+    g = sphere_model(n)
+    if one_sided:
+        ori.add_orientation_state(g)
+        g.params[ori.SEEN_DIR].data[:] = 5.0 * g.normals().detach()
+        g.params[ori.SEEN_COUNT].data[:] = 5.0
+    return save_checkpoint(run_dir / "checkpoint.pt", g, extra)
 
 
 def serve(run_dir: Path) -> tuple[uvicorn.Server, str, str]:
@@ -123,10 +131,10 @@ def frame(ws: Any, timeout: float = 120) -> dict[str, Any]:
             return unpack_frame(msg)[0]
 
 
-def run(n: int, size: int, seconds: float) -> dict[str, Any]:
+def run(n: int, size: int, seconds: float, one_sided: bool = False) -> dict[str, Any]:
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)
-        write_run(run_dir, n)
+        write_run(run_dir, n, one_sided)
         server, url, device = serve(run_dir)
         try:
             t0 = time.perf_counter()
@@ -174,6 +182,7 @@ def run(n: int, size: int, seconds: float) -> dict[str, Any]:
     steady = moving[len(moving) // 3 :] or moving
     return {
         "gaussians": n,
+        "one_sided": one_sided,
         "size": size,
         "device": device,
         "torch_threads": torch.get_num_threads(),
@@ -200,9 +209,14 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=100_000)
     ap.add_argument("--size", type=int, default=512)
     ap.add_argument("--seconds", type=float, default=6.0)
+    ap.add_argument(
+        "--one-sided", action="store_true",
+        help="record the discs as seen from outside, as a trained model's are: the far "
+        "half is culled in every view (default: two-sided, every disc drawn)",
+    )  # fmt: skip
     a = ap.parse_args()
     configure_cpu_threads()  # as `glint serve` does
-    print(json.dumps(run(a.gaussians, a.size, a.seconds), indent=2))
+    print(json.dumps(run(a.gaussians, a.size, a.seconds, a.one_sided), indent=2))
 
 
 if __name__ == "__main__":

@@ -27,11 +27,11 @@ from core.model.plan import ScenePlan
 from core.model.schedule import Phase, phase_at
 from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
-from core.render.gbuffer import render_gbuffer, render_gbuffer_tensors
+from core.render.gbuffer import near_plane, render_gbuffer, render_gbuffer_tensors
 from core.render.raster import resolve_backend
 from core.render.roughness import roughness as splat_roughness
 from core.render.shading import deferred_shade
-from core.render.view_opacity import view_opacity_scale
+from core.render.view_opacity import view_opacity_scale, visible_index
 from core.scene.cameras import Camera, Intrinsics
 
 CHECKPOINT_NAME = "checkpoint.pt"
@@ -216,12 +216,15 @@ class TrainedModel:
         channels: Iterable[str] = ("final",),
         *,
         background: Tensor | None = None,
+        compact: bool = True,
     ) -> Frame:
         """Render one view with the settings of the run's phase.
 
         Only what ``channels`` need is computed: the SH colours toward the camera for
         colour channels (geometry channels splat degree 0), deferred shading (env map
-        lookups) for ``final`` and ``specular`` only.
+        lookups) for ``final`` and ``specular`` only. A frozen model also drops the
+        Gaussians this view cannot show (``visible_index``) before projecting them;
+        ``compact=False`` keeps them all, the reference it is tested against.
         """
         wanted = set(channels)
         phase = self.phase
@@ -234,15 +237,22 @@ class TrainedModel:
                 self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing,
                 normals=st["normals"],
             )  # fmt: skip
-            colors = st.get("colors")
-            if colors is None:
-                colors = self.gaussians.colors(camera, sh_degree)
             opacities = st["opacities"] if cull is None else st["opacities"] * cull
+            # the near plane of every Gaussian, as an unfrozen render computes it
+            near = near_plane(st["means"] @ camera.R[2].to(st["means"]) + float(camera.t[2]))
+            keep = visible_index(opacities) if compact else None
+
+            def pick(t: Tensor | None) -> Tensor | None:
+                return t if t is None or keep is None else t.index_select(0, keep)
+
+            colors = pick(st.get("colors"))
+            if colors is None:
+                colors = self.gaussians.colors(camera, sh_degree, subset=keep)
             gb, _ = render_gbuffer_tensors(
-                st["means"], None, None, opacities, colors, st["normals"], st["w_r"],
-                camera, covariances=st["covariances"], backend=self.backend,
-                antialiased=phase.antialiased, lowpass=phase.lowpass,
-                roughness=st.get("roughness") if with_rough else None,
+                pick(st["means"]), None, None, pick(opacities), colors, pick(st["normals"]),
+                pick(st["w_r"]), camera, covariances=pick(st["covariances"]),
+                backend=self.backend, antialiased=phase.antialiased, lowpass=phase.lowpass,
+                roughness=pick(st.get("roughness")) if with_rough else None, near=near,
             )  # fmt: skip
         else:
             cull = view_opacity_scale(

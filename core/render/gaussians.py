@@ -351,17 +351,25 @@ class Gaussians:
         facing = (n * (c - self.means.detach())).sum(dim=-1, keepdim=True) >= 0
         return torch.where(facing, n, -n)
 
-    def colors(self, camera: Camera, degree: int | None = None) -> Tensor:
+    def colors(
+        self, camera: Camera, degree: int | None = None, subset: Tensor | None = None
+    ) -> Tensor:
         """View-dependent base colour (N, 3) for direction μ − camera centre, as 3DGS.
 
         ``degree`` defaults to ``sh_degree``; the result is ``eval + 0.5`` clamped at 0.
+        ``subset`` (indices): the colours of those Gaussians only, in that order.
         """
         deg = self.sh_degree if degree is None else int(degree)
+
+        def pick(t: Tensor) -> Tensor:
+            return t if subset is None else t.index_select(0, subset)
+
         if self.device.type == "cpu":  # one compiled pass (core.render.sh_compiled): 4-5× faster
             p = self.params
-            return sh_colors_compiled(deg, p["sh_dc"], p["sh_rest"], p["means"], camera.center)
+            dc, rest, mu = (pick(p[k]) for k in ("sh_dc", "sh_rest", "means"))
+            return sh_colors_compiled(deg, dc, rest, mu, camera.center)
         c = camera.center.to(dtype=self.means.dtype, device=self.device)
-        return sh_to_rgb(deg, self.sh, self.means - c)
+        return sh_to_rgb(deg, pick(self.sh), pick(self.means) - c)
 
     def __repr__(self) -> str:
         return f"Gaussians(num={self.num}, sh_degree={self.sh_degree}, device={self.device})"

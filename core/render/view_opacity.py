@@ -9,6 +9,7 @@ from core.kernels.dispatch import cpu_float
 from core.render import grazing as gz
 from core.render import orientation as ori
 from core.render.gaussians import Gaussians
+from core.render.raster.projection import ALPHA_MIN
 from core.scene.cameras import Camera
 
 
@@ -62,3 +63,14 @@ def _compiled(
         return cull
     fade = 1.0 - torch.sigmoid(p[gz.GRAZE_KEY]) * angle
     return fade if cull is None else cull * fade
+
+
+def visible_index(opacities: Tensor) -> Tensor | None:
+    """Indices of the Gaussians whose opacity reaches the rasteriser's ALPHA_MIN (a
+    splat's alpha is at most its opacity, so the others add nothing to any pixel), or
+    None when every one does. A frozen model's frame drops the rest before projecting:
+    one-sided culling leaves 40-50% of a closed object's splats at zero in any view."""
+    keep = opacities >= ALPHA_MIN
+    if bool(keep.all()):
+        return None
+    return keep.nonzero()[:, 0]

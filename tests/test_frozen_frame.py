@@ -1,0 +1,62 @@
+"""A frozen model's frame drops the Gaussians a view cannot show, and renders the same."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from bench.viewer import sphere_model
+from core.config import TrainConfig
+from core.model.checkpoint import save_checkpoint
+from core.model.trained import TrainedModel
+from core.render import orientation as ori
+from core.render.envmap import EnvMap, texel_directions
+from core.render.gaussians import Gaussians
+from core.render.raster.projection import ALPHA_MIN
+from core.render.view_opacity import view_opacity_scale, visible_index
+from core.scene.cameras import Camera, Intrinsics
+from core.scene.synthetic import default_env
+
+
+def test_visible_index_keeps_what_can_reach_the_alpha_floor() -> None:
+    o = torch.tensor([0.5, ALPHA_MIN, ALPHA_MIN * 0.99, 0.0, float("nan"), 1.0])
+    assert visible_index(o).tolist() == [0, 1, 5]
+    assert visible_index(torch.tensor([0.2, 0.9])) is None
+
+
+def one_sided_sphere(tmp_path: Path) -> TrainedModel:
+    """Discs on a sphere, seen from outside by five views each (so one-sided culling
+    hides the far half), with view-dependent colour (SH degree 3) and an env map."""
+    base = sphere_model(4000)
+    params = dict(base.params)
+    gen = torch.Generator().manual_seed(1)
+    params["sh_rest"] = 0.2 * torch.randn(params["sh_rest"].shape, generator=gen)
+    g = Gaussians(params, sh_degree=3)
+    ori.add_orientation_state(g)
+    g.params[ori.SEEN_DIR].data[:] = 5.0 * g.normals().detach()
+    g.params[ori.SEEN_COUNT].data[:] = 5.0
+    env = EnvMap(16)
+    env.set_texels(default_env(texel_directions(16)))
+    cfg = TrainConfig(envmap_resolution=16)
+    extra = {"iteration": cfg.iterations, "config": cfg.model_dump(mode="json"),
+             "envmap": env.state_dict()}  # fmt: skip
+    path = save_checkpoint(tmp_path / "checkpoint.pt", g, extra)
+    return TrainedModel.open(path, device="cpu").freeze()
+
+
+def test_frozen_frame_without_hidden_gaussians_is_identical(tmp_path: Path) -> None:
+    model = one_sided_sphere(tmp_path)
+    intr = Intrinsics(60.0, 60.0, 32.0, 24.0, 64, 48)
+    channels = ("final", "base", "normal", "depth", "alpha")
+    for eye in ([2.2, 0.0, 0.6], [-1.0, 1.8, -0.9]):
+        cam = Camera.look_at(eye, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], intr)
+        phase = model.phase
+        cull = view_opacity_scale(model.gaussians, cam, one_sided=phase.one_sided,
+                                  grazing=phase.grazing)  # fmt: skip
+        assert cull is not None and 0.3 < float((cull == 0).float().mean()) < 0.7
+        fast = model.render(cam, channels)
+        ref = model.render(cam, channels, compact=False)
+        for ch in channels:
+            assert torch.equal(fast.image(ch), ref.image(ch)), ch
+        assert float(ref.image("alpha").max()) > 0.9  # the sphere is in view
