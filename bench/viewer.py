@@ -63,6 +63,15 @@ def sphere_model(n: int, seed: int = 0) -> Gaussians:
     return Gaussians(params, sh_degree=0)
 
 
+def seen_from_outside(g: Gaussians, views: float = 5.0) -> None:
+    """Record every disc as seen along its outward normal from ``views`` views, as
+    training's visibility record would for a closed surface: one-sided culling then
+    hides the discs facing away from a camera."""
+    ori.add_orientation_state(g)
+    g.params[ori.SEEN_DIR].data[:] = views * g.normals().detach()
+    g.params[ori.SEEN_COUNT].data[:] = views
+
+
 def write_run(run_dir: Path, n: int, one_sided: bool = False) -> Path:
     """The checkpoint; ``one_sided`` also records each disc as seen from outside (as
     training records it), so that the far half is culled in every view."""
@@ -76,9 +85,7 @@ def write_run(run_dir: Path, n: int, one_sided: bool = False) -> Path:
     }
     g = sphere_model(n)
     if one_sided:
-        ori.add_orientation_state(g)
-        g.params[ori.SEEN_DIR].data[:] = 5.0 * g.normals().detach()
-        g.params[ori.SEEN_COUNT].data[:] = 5.0
+        seen_from_outside(g)
     return save_checkpoint(run_dir / "checkpoint.pt", g, extra)
 
 

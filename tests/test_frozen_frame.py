@@ -6,11 +6,10 @@ from pathlib import Path
 
 import torch
 
-from bench.viewer import sphere_model
+from bench.viewer import seen_from_outside, sphere_model
 from core.config import TrainConfig
 from core.model.checkpoint import save_checkpoint
 from core.model.trained import TrainedModel
-from core.render import orientation as ori
 from core.render.envmap import EnvMap, texel_directions
 from core.render.gaussians import Gaussians
 from core.render.raster.projection import ALPHA_MIN
@@ -33,9 +32,7 @@ def one_sided_sphere(tmp_path: Path) -> TrainedModel:
     gen = torch.Generator().manual_seed(1)
     params["sh_rest"] = 0.2 * torch.randn(params["sh_rest"].shape, generator=gen)
     g = Gaussians(params, sh_degree=3)
-    ori.add_orientation_state(g)
-    g.params[ori.SEEN_DIR].data[:] = 5.0 * g.normals().detach()
-    g.params[ori.SEEN_COUNT].data[:] = 5.0
+    seen_from_outside(g)
     env = EnvMap(16)
     env.set_texels(default_env(texel_directions(16)))
     cfg = TrainConfig(envmap_resolution=16)

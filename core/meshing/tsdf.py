@@ -57,6 +57,11 @@ SURFACE_ALPHA = 0.5
 EMPTY_ALPHA = 0.05
 # A view's mask value below which its pixel is background (carved), above which object.
 MASK_EMPTY, MASK_OBJECT = 0.05, 0.5
+# Fusion weights: a surface seen edge-on (> 87 degrees), or a pixel on an occlusion edge,
+# still counts this much; a pixel whose 3×3 neighbourhood spans a depth jump above
+# EDGE_JUMP_PX pixel footprints (depth / focal length) lies on such an edge.
+MIN_INCIDENCE_WEIGHT = 0.05
+EDGE_JUMP_PX = 2.5
 
 
 @dataclass
@@ -80,12 +85,14 @@ class DepthFrame:
     weight: Tensor | None = None
 
 
-MIN_INCIDENCE_WEIGHT = 0.05  # a surface seen edge-on still counts a little (> 87 degrees)
-
-
-# A pixel whose 3×3 neighbourhood spans a depth jump above this many pixel footprints
-# (depth / focal length) lies on an occlusion edge: its depth blends two surfaces.
-EDGE_JUMP_PX = 2.5
+def incidence_weight(normal: Tensor, rays: Tensor) -> Tensor:
+    """|cos| of the angle between each pixel's ray and its surface normal (H, W), at
+    least :data:`MIN_INCIDENCE_WEIGHT`: the usual TSDF confidence, since depth error
+    along the ray grows as 1/cos at grazing angles. ``normal`` (H, W, 3) need not be
+    unit (a blended G-buffer normal); pixels without one get the minimum."""
+    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
+    cos = (normal * rays).sum(-1).abs() / norm.clamp_min(1e-12)
+    return torch.where(norm > 0, cos, 0.0).clamp(MIN_INCIDENCE_WEIGHT, 1.0)
 
 
 def depth_edges(
@@ -143,16 +150,6 @@ def interpolated_depth(
     top = d[:, 0] * (1 - fu) + d[:, 1] * fu
     bottom = d[:, 2] * (1 - fu) + d[:, 3] * fu
     return torch.where(ok, top * (1 - fv) + bottom * fv, d_near)
-
-
-def incidence_weight(normal: Tensor, rays: Tensor) -> Tensor:
-    """|cos| of the angle between each pixel's ray and its surface normal (H, W), at
-    least :data:`MIN_INCIDENCE_WEIGHT`: the usual TSDF confidence, since depth error
-    along the ray grows as 1/cos at grazing angles. ``normal`` (H, W, 3) need not be
-    unit (a blended G-buffer normal); pixels without one get the minimum."""
-    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
-    cos = (normal * rays).sum(-1).abs() / norm.clamp_min(1e-12)
-    return torch.where(norm > 0, cos, 0.0).clamp(MIN_INCIDENCE_WEIGHT, 1.0)
 
 
 @dataclass
