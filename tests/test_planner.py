@@ -83,6 +83,31 @@ def test_no_neighbours_turns_multi_view_off_and_says_why():
     assert plan.background.value == "masked"
 
 
+def test_masked_capture_drops_multi_view_unless_something_else_must_pin_it():
+    """Every view masked and silhouette points on: L_multi off, with the reason and the
+    way back; one unmasked view, no silhouette points or the user's override: on."""
+    scene = make_scene("sphere", "glossy", n_train=16, n_test=1, size=16, samples=1)
+
+    def plan(**extra):
+        wide = {"loss": {"multiview_max_angle_deg": 90.0}}  # 16 views: give each a neighbour
+        return plan_scene(scene, config_from_dict({**wide, **extra}))
+
+    masked = plan()
+    assert masked.silhouette.value is True and masked.multi_view.value is False
+    assert "silhouette points pin the surface" in masked.multi_view.reason
+    assert "plan_overrides.multi_view=true" in masked.multi_view.reason
+    assert masked.multi_view.evidence["views_with_neighbour"] == 16
+    assert all(masked.neighbour_of(i) is None for i in range(16))  # nothing rendered for it
+    forced = plan(plan_overrides={"multi_view": True})
+    assert forced.multi_view.value is True and forced.multi_view.overridden
+    assert forced.neighbour_of(0) is not None
+    assert plan(plan_overrides={"silhouette": False}).multi_view.value is True
+    assert plan(loss={"silhouette": 0, "multiview_max_angle_deg": 90.0}).multi_view.value
+    scene.train[3].mask = None  # one view without a mask: the masks do not pin it all
+    partly = plan()
+    assert partly.silhouette.value is True and partly.multi_view.value is True
+
+
 def test_auto_envmap_resolution_follows_focal_length():
     # The paper's 128 at f ≈ 1111 px (800-px NeRF-synthetic), then scaled with f.
     assert auto_envmap_resolution(1111.1) == 128

@@ -234,6 +234,7 @@ def test_depth_losses_use_only_pixels_facing_the_view(tiny_scene, tmp_path, monk
     cfg = config_from_dict({
         **TINY, "iterations": 40, "ablation": {"facing_depth": facing},
         "loss": {"multiview_max_angle_deg": 90.0},  # 24 views: give each a neighbour
+        "plan_overrides": {"multi_view": True},  # a masked scene's plan drops L_multi
     })  # fmt: skip
     t = Trainer(tiny_scene, cfg, tmp_path)
     t.setup(resume=False)

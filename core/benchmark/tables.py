@@ -284,6 +284,9 @@ def _bench_preamble(
             "the machine had while each run trained.",
             "- Deferred shading (env map) is forced on wherever the configuration has it, "
             "whatever the scene planner would decide.",
+            "- L_multi is used as the scene plan decides: a capture whose every view has a "
+            "mask drops it (its silhouette points pin the surface), so there 'w/o L_multi' "
+            "repeats the full model; `--set plan_overrides.multi_view=true` gives the paper's.",
             "- Geometry: TSDF fusion of the planar depth (Eq. 5 depth in that ablation) of "
             "every training view on a grid fitted to each run's surface (voxel = its largest "
             f"side / resolution, e.g. {_f(fu.get('voxel'), 4)} in "

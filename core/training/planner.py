@@ -194,12 +194,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         "max_angle_deg": cfg.loss.multiview_max_angle_deg,
         "median_neighbour_angle_deg": float(torch.tensor(angles).median()) if angles else None,
     }
-    if not cfg.ablation.multi_view:
-        mv = Decision(False, "switched off by the ablation config", mv_evidence)
-    elif with_nb == 0:
-        mv = Decision(False, "no view has a neighbour within the angle limit", mv_evidence)
-    else:
-        mv = Decision(True, f"{with_nb}/{len(cams)} views have a neighbour", mv_evidence)
+    silhouette = decide_silhouette(scene, cfg)
+    mv = decide_multi_view(cfg, with_nb, len(cams), silhouette, mv_evidence)
     if scene.has_masks:
         bg = Decision("masked", f"alpha/masks present: composite over {cfg.background}", {})
     else:
@@ -216,13 +212,38 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         mesh = Decision(False, "switched off by outputs.mesh (`glint mesh` makes one later)")
     plan = ScenePlan(
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
-            [float(c.intrinsics.fx) for c in cams], cfg), silhouette=decide_silhouette(scene, cfg),
+            [float(c.intrinsics.fx) for c in cams], cfg), silhouette=silhouette,
         roughness=plan_roughness(cfg),
     )  # fmt: skip
     _apply_overrides(plan, cfg)
     if not plan.envmap.pending:  # the user set the env map: no probe will decide roughness
         decide_roughness(plan)
     return plan
+
+
+def decide_multi_view(
+    cfg: TrainConfig, with_neighbour: int, views: int, silhouette: Decision,
+    evidence: dict[str, Any],
+) -> Decision:  # fmt: skip
+    """L_multi (Eq. 12–14) where views have neighbours, unless every view is masked and
+    silhouette points pin the surface: there it cost CD, PSNR and normals on all six
+    rendered dev scenes (validation split included) and ~30% of the training time
+    (docs/benchmarks.md, issue 36). ``plan_overrides.multi_view`` puts it back."""
+    if not cfg.ablation.multi_view:
+        return Decision(False, "switched off by the ablation config", evidence)
+    if with_neighbour == 0:
+        return Decision(False, "no view has a neighbour within the angle limit", evidence)
+    # a user's silhouette override counts: without the points nothing else pins it
+    sil_on = bool(cfg.plan_overrides.get("silhouette", silhouette.value))
+    if sil_on and silhouette.evidence.get("masked_views") == views:
+        reason = (
+            f"every view has a mask and silhouette points pin the surface: on such "
+            f"captures L_multi cost accuracy and ~30% of the training time "
+            f"(docs/benchmarks.md); {with_neighbour}/{views} views have a neighbour, "
+            "plan_overrides.multi_view=true uses them"
+        )
+        return Decision(False, reason, evidence)
+    return Decision(True, f"{with_neighbour}/{views} views have a neighbour", evidence)
 
 
 def decide_silhouette(scene: Scene, cfg: TrainConfig) -> Decision:

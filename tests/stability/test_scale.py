@@ -123,7 +123,8 @@ def test_training_is_unit_free(sphere_48, tmp_path):
     """30 iterations in mm, m and km (all phases, densification, multi-view loss on): the
     same Gaussian count, means / k equal to 1e-4 of the radius, log-scales − log k and
     opacity logits equal to 1e-3, the position lr set by the trainer ∝ k."""
-    runs = {k: _train(scaled_scene(sphere_48, k), tmp_path, f"k{k:g}") for k in UNITS}
+    mv = {"plan_overrides": {"multi_view": True}}  # a masked scene's plan drops it
+    runs = {k: _train(scaled_scene(sphere_48, k), tmp_path, f"k{k:g}", mv) for k in UNITS}
     ref = runs[1.0]
     assert ref.plan.multi_view.value, "the multi-view loss must be part of this run"
     lr1 = ref.optimizers["means"].param_groups[0]["lr"]
