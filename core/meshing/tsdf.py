@@ -337,11 +337,20 @@ class TSDFVolume:
         self.color_weight = torch.zeros(m, device=self.device)
 
     @torch.no_grad()
-    def integrate(self, frame: DepthFrame, *, carve: bool = True, chunk: int = 1 << 22) -> None:
-        """Fuse one view (nearest-pixel depth lookup, projective distance along z).
+    def integrate(
+        self,
+        frame: DepthFrame,
+        *,
+        carve: bool = True,
+        chunk: int = 1 << 22,
+        compiled: bool | None = None,
+    ) -> None:
+        """Fuse one view (depth between pixel centres, projective distance along z).
 
         Only the voxels the view updates are touched (index ops), so a view costs
         one projection of the band plus work proportional to what it sees.
+        ``compiled``: one numba pass over the band (core.meshing.tsdf_compiled; None:
+        on the CPU), False: the torch ops below, the reference.
         """
         cam = frame.camera
         H, W = cam.height, cam.width
@@ -359,6 +368,21 @@ class TSDFVolume:
         # P = K [R | t]: (u·z, v·z, z) = P (x, 1)
         P = cam.K(torch.float64) @ torch.cat([cam.R, cam.t[:, None]], 1)
         P = P.to(self.device, torch.float32)
+        if compiled is None:
+            compiled = self.device.type == "cpu"
+        if compiled:
+            from core.meshing.tsdf_compiled import integrate_compiled
+
+            def arr(t: Tensor | None) -> np.ndarray | None:
+                return None if t is None else t.contiguous().numpy()
+
+            integrate_compiled(
+                self.points.numpy(), P.numpy(), arr(depth), arr(valid), arr(empty),
+                arr(view_w), arr(color), W, H, cam.intrinsics.fx, EDGE_JUMP_PX, self.trunc,
+                self.tsdf.numpy(), self.weight.numpy(), self.color.numpy(),
+                self.color_weight.numpy(),
+            )  # fmt: skip
+            return
         for s in range(0, self.points.shape[0], chunk):
             uvz = self.points[s : s + chunk] @ P[:, :3].T + P[:, 3]
             z = uvz[:, 2]
