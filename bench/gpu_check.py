@@ -249,6 +249,7 @@ def _train_step(kit: Kit, size: int, n: int, repeat: int, tag: str) -> dict[str,
         "full_step_ms": round(by["full step (multi-view phase)"]["ms"], 2),
         "plain_step_ms": round(by["plain step"]["ms"], 2),
         "full_over_plain": round(res["full_over_plain_step"], 3),
+        "masked_full_over_plain": round(res["masked_full_over_plain_step"], 3),
         "deferred_fps": round(res["deferred_fps"], 1),
         "peak_mib": round(max(r["peak_mib"] for r in res["rows"]), 1),
     }

@@ -8,7 +8,7 @@ import math
 import pytest
 
 from bench.common import bench_camera
-from bench.train_step import format_table, neighbour_camera, run
+from bench.train_step import MASKED_STEP, format_table, neighbour_camera, run
 
 
 @pytest.mark.parametrize("no_roughness", [False, True])
@@ -27,9 +27,11 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool):
     )
     res = run(args)
     names = [r["case"] for r in res["rows"]]
-    assert names[0] == "plain render" and names[-1] == "full step (multi-view phase)"
+    assert names[0] == "plain render"
+    assert names[-2:] == ["full step (multi-view phase)", MASKED_STEP]
     assert all(r["ms"] > 0 and math.isfinite(r["ms"]) for r in res["rows"])
     assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
+    assert res["masked_full_over_plain_step"] > 0
     assert "full step / plain step" in format_table(res)
     assert res["roughness"] is not no_roughness  # the full model as trained, or without it
 

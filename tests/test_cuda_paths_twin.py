@@ -95,5 +95,5 @@ def test_gpu_benchmark_runs_through_the_cuda_path():
     )  # fmt: skip
     res = run(args)
     assert res["backend"] == "cuda"
-    assert [r["case"] for r in res["rows"]][-1] == "full step (multi-view phase)"
+    assert "full step (multi-view phase)" in [r["case"] for r in res["rows"]]
     assert all(math.isfinite(r["ms"]) and r["ms"] > 0 for r in res["rows"])
