@@ -33,7 +33,12 @@ def main() -> int:
     t0 = time.perf_counter()
     torch.set_num_threads(1)
     scene = make_scene("sphere", "glossy", n_train=6, n_test=2, size=32, samples=1)
-    cfg = TrainConfig(iterations=60, init_points=400)
+    cfg = TrainConfig(  # L_multi kept (a masked scene's plan drops it) and given neighbours
+        iterations=60,
+        init_points=400,
+        plan_overrides={"multi_view": True},
+        loss={"multiview_max_angle_deg": 90.0},
+    )
     with tempfile.TemporaryDirectory() as tmp:
         train_scene(scene, tmp, cfg)  # every phase, then the outputs (mesh, renders)
         model = TrainedModel.open(Path(tmp) / CHECKPOINT_NAME, device="cpu").freeze()
