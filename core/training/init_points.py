@@ -16,13 +16,26 @@ from core.render.depth_geometry import bilinear_lookup
 from core.scene.views import Scene
 
 
-def inside_hull(points: Tensor, scene: Scene, min_fraction: float) -> Tensor:
-    """(M,) bool: inside the mask in ≥ ``min_fraction`` of the views that see the point."""
+def inside_hull(
+    points: Tensor, scene: Scene, min_fraction: float, *, compiled: bool | None = None
+) -> Tensor:
+    """(M,) bool: inside the mask in ≥ ``min_fraction`` of the views that see the point.
+
+    ``compiled``: one numba pass over the points (core.training.init_points_compiled;
+    None: wherever it applies), False: the torch loop below, the reference."""
+    views = [v for v in scene.train if v.mask is not None]
+    if compiled is not False:
+        from core.training.init_points_compiled import compilable, inside_hull_compiled
+
+        if views and compilable(points, views):
+            return inside_hull_compiled(points, views, min_fraction)
+        if compiled:
+            raise ValueError(
+                "inside_hull: the compiled pass needs float64 CPU points and float32 masks"
+            )
     inside = torch.zeros(points.shape[0])
     seen = torch.zeros(points.shape[0])
-    for v in scene.train:
-        if v.mask is None:
-            continue
+    for v in views:
         uv, z = v.camera.project(points)
         m, ok = bilinear_lookup(v.mask, uv.to(v.mask.dtype))
         ok = ok & (z > 0)
