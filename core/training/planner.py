@@ -195,7 +195,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         "median_neighbour_angle_deg": float(torch.tensor(angles).median()) if angles else None,
     }
     silhouette = decide_silhouette(scene, cfg)
-    mv = decide_multi_view(cfg, with_nb, len(cams), silhouette, mv_evidence)
+    every_view_masked = all(v.mask is not None for v in scene.train)
+    mv = decide_multi_view(cfg, with_nb, len(cams), every_view_masked, silhouette, mv_evidence)
     if scene.has_masks:
         bg = Decision("masked", f"alpha/masks present: composite over {cfg.background}", {})
     else:
@@ -222,8 +223,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
 
 
 def decide_multi_view(
-    cfg: TrainConfig, with_neighbour: int, views: int, silhouette: Decision,
-    evidence: dict[str, Any],
+    cfg: TrainConfig, with_neighbour: int, views: int, every_view_masked: bool,
+    silhouette: Decision, evidence: dict[str, Any],
 ) -> Decision:  # fmt: skip
     """L_multi (Eq. 12–14) where views have neighbours, unless every view is masked and
     silhouette points pin the surface: there it cost CD, PSNR and normals on all six
@@ -235,10 +236,10 @@ def decide_multi_view(
         return Decision(False, "no view has a neighbour within the angle limit", evidence)
     # a user's silhouette override counts: without the points nothing else pins it
     sil_on = bool(cfg.plan_overrides.get("silhouette", silhouette.value))
-    if sil_on and silhouette.evidence.get("masked_views") == views:
+    if sil_on and every_view_masked:
         reason = (
-            f"every view has a mask and silhouette points pin the surface: on such "
-            f"captures L_multi cost accuracy and ~30% of the training time "
+            "every view has a mask and silhouette points pin the surface: on such "
+            "captures L_multi cost accuracy and ~30% of the training time "
             f"(docs/benchmarks.md); {with_neighbour}/{views} views have a neighbour, "
             "plan_overrides.multi_view=true uses them"
         )
