@@ -42,11 +42,14 @@ def kernel_threads_from_env() -> int | None:
 
 def configure_cpu_threads(kernel_threads: int | None = None) -> int:
     """Apply the layout: torch on one thread, the kernels on ``kernel_threads`` (default:
-    ``GLINT_KERNEL_THREADS``, else every usable CPU). Returns the kernel thread count."""
+    ``GLINT_KERNEL_THREADS``, else every usable CPU), and freed memory kept in the
+    process (core.kernels.allocator). Returns the kernel thread count."""
     import torch
 
+    from core.kernels.allocator import keep_freed_memory
     from core.kernels.pool import set_kernel_threads
 
+    keep_freed_memory()
     n = kernel_threads or kernel_threads_from_env() or usable_cpus()
     torch.set_num_threads(1)
     set_kernel_threads(n)
