@@ -391,7 +391,9 @@ class Trainer:
                     if p.grad is None or p.grad.numel() == 0:
                         continue
                     limit = math.sqrt(torch.finfo(p.grad.dtype).max)
-                    ratios.append(p.grad.detach().abs().amax().float() / limit)
+                    # max |g| from min and max: no |g| buffer the size of the gradient
+                    lo, hi = torch.aminmax(p.grad.detach())
+                    ratios.append(torch.maximum(-lo, hi).float() / limit)
         return ratios
 
     def step(self) -> dict[str, float]:

@@ -136,3 +136,31 @@ def test_overflowing_gradient_is_skipped(sphere_48, tmp_path, monkeypatch):
     t = _run(sphere_48, tmp_path)
     assert t.skipped_steps == 1
     _assert_clean(t, tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("bad", "usable"),
+    [(0.5, True), (-3.0e19, False), (3.0e19, False), (float("-inf"), False),
+     (float("inf"), False), (float("nan"), False), (-1.0e19, True)],
+)  # fmt: skip
+def test_gradient_ratio_is_max_abs_over_sqrt_max(bad, usable):
+    """The guard's ratio per parameter is max|g| / √(float max): a gradient is usable
+    below 1 only. Negative overflow counts as much as positive (the ratio is taken from
+    min and max, without an |g| buffer); NaN compares False."""
+    from types import SimpleNamespace
+
+    a = torch.nn.Parameter(torch.zeros(40, 15, 3))
+    b = torch.nn.Parameter(torch.zeros(7))
+    a.grad = torch.linspace(-0.25, 0.125, a.numel()).reshape(a.shape)
+    b.grad = torch.zeros(7)
+    b.grad[3] = bad
+    empty = torch.nn.Parameter(torch.zeros(0))
+    empty.grad = torch.zeros(0)
+    opt = torch.optim.Adam([a, b, empty])
+    ratios = trainer_mod.Trainer._gradient_ratios(SimpleNamespace(optimizers={"x": opt}))
+    assert len(ratios) == 2  # the empty gradient is skipped
+    limit = math.sqrt(torch.finfo(torch.float32).max)
+    assert float(ratios[0]) == pytest.approx(0.25 / limit)
+    assert (float(ratios[1]) < 1.0) is usable
+    if usable:
+        assert float(ratios[1]) == pytest.approx(abs(bad) / limit)
