@@ -8,6 +8,7 @@ downstream ever sees OpenGL axes.
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import lru_cache
 
 import torch
 from torch import Tensor
@@ -46,6 +47,19 @@ class Intrinsics:
         """NeRF-synthetic style: focal from the horizontal field of view, centred."""
         f = 0.5 * width / torch.tan(torch.tensor(0.5 * fov_x, dtype=torch.float64)).item()
         return Intrinsics(f, f, width / 2.0, height / 2.0, width, height)
+
+
+RAY_CACHE_SIZE = 16  # distinct intrinsics × dtype × device kept (a capture has one or a few)
+
+
+@lru_cache(maxsize=RAY_CACHE_SIZE)
+def _camera_rays(intr: Intrinsics, dtype: torch.dtype, device: torch.device) -> Tensor:
+    u = torch.arange(intr.width, dtype=dtype, device=device) + 0.5
+    v = torch.arange(intr.height, dtype=dtype, device=device) + 0.5
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    x = (uu - intr.cx) / intr.fx
+    y = (vv - intr.cy) / intr.fy
+    return torch.stack([x, y, torch.ones_like(x)], dim=-1)
 
 
 @dataclass
@@ -159,13 +173,11 @@ class Camera:
     ) -> Tensor:
         """(H, W, 3) r̃ = K⁻¹(u, v, 1) in camera space: z component exactly 1.
 
-        Depth along r̃ is z-depth, which is what Eq. 8's d = D / (N·r̃) returns.
+        Depth along r̃ is z-depth, which is what Eq. 8's d = D / (N·r̃) returns. The
+        tensor is shared between calls with the same intrinsics (a training step read
+        it five times, 0.36 ms each at 128²): callers must not write into it.
         """
-        i = self.intrinsics
-        uv = self.pixel_centers(dtype, device)
-        x = (uv[..., 0] - i.cx) / i.fx
-        y = (uv[..., 1] - i.cy) / i.fy
-        return torch.stack([x, y, torch.ones_like(x)], dim=-1)
+        return _camera_rays(self.intrinsics, dtype, torch.device(device))
 
     def world_rays(
         self, dtype: torch.dtype = torch.float32, device: torch.device | str = "cpu"
