@@ -12,6 +12,7 @@ from torch import Tensor
 
 from core.kernels.dispatch import cpu_float
 from core.render.gbuffer_compiled import (
+    FeatureLayout,
     can_build_compiled,
     features_compiled,
     lower_median_positive,
@@ -114,27 +115,40 @@ _C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z, _C_ROUGH = slice(0, 3), slice(3, 6), 
 
 def gbuffer_features(
     means: Tensor,
-    colors: Tensor,
+    colors: Tensor | None,
     normals_world: Tensor,
-    w_r: Tensor,
+    w_r: Tensor | None,
     camera: Camera,
     *,
     roughness: Tensor | None = None,
+    held: bool = False,
     compiled: bool = True,
 ) -> Tensor:
-    """(N, 9) channels each Gaussian splats: base (3), facing camera normal (3), D, w_r, z;
-    (N, 10) with ``roughness`` (N,) as the last.
+    """(N, C) channels each Gaussian splats, in :class:`FeatureLayout` order: base (3),
+    facing camera normal (3), D, w_r, z; roughness (N,) as a tenth when given; the held
+    normal (3) and held D (normals detached) last when ``held``. ``colors`` None: a
+    geometry-only pass, normal (3), D and z (``w_r`` and ``roughness`` unused).
 
-    Gradient-free CPU calls (viewer frames, evaluation renders) take the compiled
-    kernel of ``core.render.gbuffer_compiled``; ``compiled=False`` keeps this PyTorch path, the
-    reference it is tested against.
+    CPU float tensors take the compiled kernel and its hand-written backward
+    (``core.render.gbuffer_compiled``); ``compiled=False`` keeps this PyTorch path, the
+    reference it is tested against (and the path on a GPU).
     """
-    if compiled and can_build_compiled(means, colors, normals_world, w_r):
-        feats = features_compiled(means, colors, normals_world, w_r, camera)
-        return feats if roughness is None else torch.cat([feats, roughness[:, None]], dim=-1)
+    geometry_only = colors is None
+    rough = None if geometry_only else roughness
+    w_r = None if geometry_only else w_r
+    layout = FeatureLayout(geometry_only, rough is not None, held and not geometry_only)
+    if compiled and can_build_compiled(means, colors, normals_world, w_r, rough):
+        return features_compiled(means, colors, normals_world, w_r, camera, layout, rough)
     n_cam, D, mu_cam = _facing_planes(means, normals_world, camera)
-    extra = [] if roughness is None else [roughness[:, None]]
-    return torch.cat([colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3], *extra], dim=-1)
+    if geometry_only:
+        return torch.cat([n_cam, D, mu_cam[:, 2:3]], dim=-1)
+    cols = [colors, n_cam, D, w_r[:, None], mu_cam[:, 2:3]]
+    if rough is not None:
+        cols.append(rough[:, None])
+    if layout.held:
+        n_held, _, _ = _facing_planes(means, normals_world.detach(), camera)
+        cols += [n_held, (n_held * mu_cam).sum(-1, keepdim=True)]
+    return torch.cat(cols, dim=-1)
 
 
 def _facing_planes(means: Tensor, normals_world: Tensor, camera: Camera) -> tuple[Tensor, ...]:
@@ -211,13 +225,6 @@ def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
 _G_NORMAL, _G_PLANE, _G_Z = slice(0, 3), 3, 4
 
 
-def geometry_features(means: Tensor, normals_world: Tensor, camera: Camera) -> Tensor:
-    """(N, 5) channels of a pass that only needs depth and normals: the facing camera
-    normal (3), D and centre z, as :func:`gbuffer_features` computes them."""
-    n_cam, D, mu_cam = _facing_planes(means, normals_world, camera)
-    return torch.cat([n_cam, D, mu_cam[:, 2:3]], dim=-1)
-
-
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,
@@ -262,14 +269,9 @@ def render_gbuffer_tensors(
     geometry_only = colors is None
     held = held_plane and not geometry_only
     with stage("features"):
-        if geometry_only:
-            feats = geometry_features(means, normals_world, camera)
-        else:
-            feats = gbuffer_features(means, colors, normals_world, w_r, camera, roughness=roughness)
-        if held:
-            n_held, _, mu_cam = _facing_planes(means, normals_world.detach(), camera)
-            d_held = (n_held * mu_cam).sum(-1, keepdim=True)
-            feats = torch.cat([feats, n_held, d_held], dim=-1)
+        feats = gbuffer_features(
+            means, colors, normals_world, w_r, camera, roughness=roughness, held=held
+        )
     if near is None:
         near = near_plane(feats[:, _G_Z if geometry_only else _C_Z])
     res = rasterize(
