@@ -55,10 +55,21 @@ def cube_mip_chain(texels: Tensor) -> list[Tensor]:
     return levels
 
 
+def lod_scale(resolution: int) -> float:
+    """x per squared roughness in the LOD ½ log₂(1 + x²) of a map of face size R (see top)."""
+    return 4.0 * resolution / (0.5 * math.pi)
+
+
+def lod_range(resolution: int) -> tuple[float, float]:
+    """(:func:`lod_scale`, the top level) of a map of face size R: what a compiled
+    lookup needs to turn roughness into a level as :func:`roughness_to_lod` does."""
+    return lod_scale(resolution), float(len(mip_sizes(resolution)) - 1)
+
+
 def roughness_to_lod(roughness: Tensor, resolution: int, num_levels: int) -> Tensor:
     """Level of detail (same shape as ``roughness``) in [0, num_levels − 1] (see top)."""
     alpha = roughness.clamp(0.0, 1.0).square()
-    x = alpha * (4.0 * resolution / (0.5 * math.pi))
+    x = alpha * lod_scale(resolution)
     lod = 0.5 * torch.log2(1.0 + x * x)
     return lod.clamp(max=float(num_levels - 1))
 

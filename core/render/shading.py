@@ -26,9 +26,11 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render.envmap import EnvMap
-from core.render.envmap_mips import mip_sizes, roughness_to_lod, sample_cube_lod
+from core.render.envmap_mips import lod_range, mip_sizes, roughness_to_lod, sample_cube_lod
 from core.render.gbuffer import GBuffer
+from core.render.reflection_compiled import reflection_and_lod
 from core.render.shading_compiled import can_shade_compiled, shade_compiled
 from core.stages import stage
 
@@ -102,7 +104,9 @@ def deferred_shade(
     colour over the background, and ``envmap`` is neither read nor required (may be None).
     On the CPU, when no gradient is wanted (viewer frames, evaluation renders), the
     compiled kernel of ``core.render.shading_compiled`` shades the frame in one pass;
-    ``compiled=False`` keeps the PyTorch path, the reference it is tested against.
+    with gradients (training) the reflected directions and LOD come from
+    ``core.render.reflection_compiled``; ``compiled=False`` keeps the PyTorch path, the
+    reference both are tested against.
     """
     base, alpha, w_r = gbuffer.base, gbuffer.alpha, gbuffer.w_r
     h, w = base.shape[:2]
@@ -124,13 +128,19 @@ def deferred_shade(
     if compiled and can_shade_compiled(tensors if rough is None else (*tensors, rough), envmap):
         final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough)
         return ShadeResult(final, base, specular, w_r, refl)
-    _, view = cam.world_rays(dtype=base.dtype, device=base.device)
-    refl = reflect(view, world_normals(gbuffer))
+    buffers = (gbuffer.normal, alpha) if rough is None else (gbuffer.normal, alpha, rough)
+    if compiled and cpu_float(*buffers) and len({t.dtype for t in buffers}) == 1:
+        # a training step: directions and LOD in one pass with a hand-written backward
+        scale, top = (0.0, 0.0) if rough is None else lod_range(envmap.resolution)
+        refl, lod = reflection_and_lod(gbuffer.normal, rough, alpha, cam, scale, top)
+    else:
+        _, view = cam.world_rays(dtype=base.dtype, device=base.device)
+        refl = reflect(view, world_normals(gbuffer))
+        lod = None if rough is None else pixel_lod(rough, alpha, envmap.resolution)
     with stage("envmap_lookup"):
-        if gbuffer.roughness is None:
+        if lod is None:
             radiance = envmap.sample(refl)
         else:
-            lod = pixel_lod(gbuffer.roughness, alpha, envmap.resolution)
             radiance = sample_cube_lod(envmap.texels(), refl, lod)
     specular = w_r.unsqueeze(-1) * radiance
     return ShadeResult(base + specular + fill, base, specular, w_r, refl)

@@ -32,7 +32,7 @@ from torch import Tensor
 
 from core.kernels.pool import run_ranges
 from core.render.envmap import EnvMap, pad_cube
-from core.render.envmap_mips import _packed_levels, cube_mip_chain
+from core.render.envmap_mips import _packed_levels, cube_mip_chain, lod_scale
 
 __all__ = ["can_shade_compiled", "shade_compiled"]
 
@@ -208,14 +208,14 @@ def shade_compiled(
     intr = np.array([i.fx, i.fy, i.cx, i.cy], np.float64)
     rot = camera.R.detach().to(torch.float64).contiguous().numpy()
     min_major = math.sqrt(torch.finfo(dtype).tiny)
-    lod_scale = 4.0 * texels.shape[1] / (0.5 * math.pi)  # as roughness_to_lod
+    scale = lod_scale(texels.shape[1])
     final = np.empty((h, w, ch), npdt)
     specular = np.empty((h, w, ch), npdt)
     refl = np.empty((h, w, 3), npdt)
     args = (
         arr(base), arr(normal), arr(w_r), arr(alpha),
         None if roughness is None else arr(roughness), arr(bg), rot, intr, arr(packed),
-        np.array(offsets, np.int64), np.array(sizes, np.int64), lod_scale, min_major,
+        np.array(offsets, np.int64), np.array(sizes, np.int64), scale, min_major,
         final, specular, refl,
     )  # fmt: skip
     run_ranges(_shade_rows, h, args)
