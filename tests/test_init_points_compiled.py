@@ -30,7 +30,7 @@ def _points(n: int, seed: int) -> torch.Tensor:
     return pts
 
 
-@pytest.mark.parametrize("min_fraction", [0.5, 0.9, 1.0])
+@pytest.mark.parametrize("min_fraction", [0.0, 0.5, 0.9, 1.0])
 def test_compiled_hull_test_matches_the_reference(scene, min_fraction) -> None:
     pts = _points(20_000, 1)
     ref = inside_hull(pts, scene, min_fraction, compiled=False)
