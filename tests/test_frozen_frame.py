@@ -57,3 +57,30 @@ def test_frozen_frame_without_hidden_gaussians_is_identical(tmp_path: Path) -> N
         for ch in channels:
             assert torch.equal(fast.image(ch), ref.image(ch)), ch
         assert float(ref.image("alpha").max()) > 0.9  # the sphere is in view
+
+
+def test_mesh_fusion_frames_are_the_same_from_a_frozen_copy(tmp_path: Path) -> None:
+    """Mesh fusion renders a frozen copy of the model it is given (``frozen``): the
+    original stays unfrozen, and every frame it fuses (depth, valid, colour, weight) is
+    the unfrozen model's up to float rounding (a frozen model projects precomputed
+    covariances instead of building them from rotations and scales)."""
+    from core.meshing.mesh import model_depth_frame
+    from core.scene.views import View
+
+    one_sided_sphere(tmp_path)
+    model = TrainedModel.open(tmp_path / "checkpoint.pt", device="cpu")
+    copy = model.frozen()
+    assert copy is not model and copy._static is not None and model._static is None
+    assert copy.frozen() is copy
+    intr = Intrinsics(60.0, 60.0, 32.0, 24.0, 64, 48)
+    for eye in ([2.2, 0.0, 0.6], [0.4, -2.0, 1.1]):
+        cam = Camera.look_at(eye, [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], intr)
+        view = View(name="v", camera=cam, image=torch.zeros(48, 64, 3))
+        a, b = model_depth_frame(copy, view), model_depth_frame(model, view)
+        assert int(a.valid.sum()) > 100
+        assert torch.equal(a.empty, b.empty)
+        assert float((a.valid != b.valid).float().mean()) < 1e-3  # a threshold may flip
+        both = a.valid & b.valid
+        torch.testing.assert_close(a.depth[both], b.depth[both], rtol=1e-5, atol=1e-6)
+        torch.testing.assert_close(a.color[both], b.color[both], rtol=1e-5, atol=1e-5)
+        torch.testing.assert_close(a.weight[both], b.weight[both], rtol=1e-5, atol=1e-5)

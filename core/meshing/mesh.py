@@ -177,6 +177,7 @@ def mesh_model(
     out = Path(out)
     views = list(views)
     stop = should_stop or (lambda: False)
+    model = model.frozen()  # three passes over every view: the per-splat work once
 
     def report(stage: str, done: int, total: int) -> None:
         if stop():

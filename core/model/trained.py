@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -208,6 +208,12 @@ class TrainedModel:
             static["colors"] = g.colors(dummy, 0).detach()
         self._static = static
         return self
+
+    def frozen(self) -> TrainedModel:
+        """This model frozen (:meth:`freeze`), as a copy sharing its tensors when it is
+        not frozen yet: for a caller that renders many views of a model someone else
+        holds (mesh fusion, 3 passes over every training view). The same frames."""
+        return self if self._static is not None else replace(self).freeze()
 
     @torch.no_grad()
     def render(
