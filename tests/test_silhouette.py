@@ -178,3 +178,44 @@ def test_the_plan_decides_silhouette_points(loose_sphere: Scene) -> None:
     assert decide_silhouette(loose_sphere, TrainConfig(loss={"silhouette": 0.0})).value is False
     plan = plan_scene(loose_sphere, TrainConfig(plan_overrides={"silhouette": False}))
     assert plan.silhouette.value is False and plan.silhouette.overridden
+
+
+def test_silhouette_depth_keeps_each_views_taps_and_gives_the_same_loss(
+    loose_sphere: Scene,
+) -> None:
+    """The points' pixel taps are built at a view's first step and kept: later steps give
+    the value and gradient the per-step lookup gave, and another camera for the same
+    view index is not served the kept taps."""
+    from core.render.depth_geometry import bilinear_lookup
+    from core.training.silhouette import FLOATING_PX, OCCLUDED_PX
+
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+
+    def reference(i: int, cam, depth, valid):  # the lookup each step made before
+        uv, z = cam.project(pts.points[loss.per_view[i]])
+        uv, z = uv.to(depth), z.to(depth)
+        d, inside = bilinear_lookup(depth, uv)
+        covered, _ = bilinear_lookup(valid.to(depth), uv)
+        gap = (d - z) / (z / cam.intrinsics.fx)
+        ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
+        return gap.abs()[ok].mean()
+
+    g = torch.Generator().manual_seed(0)
+    for i in (0, 5):
+        v = loose_sphere.train[i]
+        for step in range(3):
+            base = torch.full((v.height, v.width), 2.5) + 0.01 * torch.rand(
+                v.height, v.width, generator=g
+            )
+            valid = torch.rand(v.height, v.width, generator=g) > 0.05 * step
+            a, b = base.clone().requires_grad_(True), base.clone().requires_grad_(True)
+            got, want = loss(i, v.camera, a, valid), reference(i, v.camera, b, valid)
+            got.backward()
+            want.backward()
+            assert got.item() == want.item() and torch.equal(a.grad, b.grad)
+    other = loose_sphere.train[1].camera  # not view 0's camera: its own taps
+    depth = torch.full((other.height, other.width), 2.5)
+    valid = torch.ones(other.height, other.width, dtype=torch.bool)
+    assert loss(0, other, depth, valid).item() == reference(0, other, depth, valid).item()

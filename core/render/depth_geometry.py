@@ -8,6 +8,7 @@ so they live below both.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
@@ -92,12 +93,32 @@ def _same_surface_step(fwd: Tensor, bwd: Tensor, central: Tensor, ratio: float) 
     return torch.where(jump, 2.0 * shorter, central)
 
 
-def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
-    """Sample (H, W) ``img`` at pixel coordinates ``uv`` (M, 2) (centres at +0.5).
+@dataclass(frozen=True)
+class BilinearTaps:
+    """Where :func:`bilinear_lookup` reads an (H, W) image for pixel coordinates uv:
+    the top-left tap's flat index, the weights toward the right and lower taps, and
+    whether the point lies within the pixel-centre hull. Fixed points seen by a fixed
+    camera (the silhouette points) read the same taps every step: build them once."""
 
-    Returns (values (M,), inside (M,)); ``inside`` means within the pixel-centre hull.
-    """
-    H, W = img.shape
+    width: int
+    i00: Tensor
+    fx: Tensor
+    fy: Tensor
+    inside: Tensor
+
+    def sample(self, img: Tensor) -> Tensor:
+        """(M,) bilinear values of ``img`` (H, W) at the taps; differentiable in ``img``."""
+        flat = img.reshape(-1)
+        i00, fx, fy, w = self.i00, self.fx, self.fy, self.width
+        v00, v01 = flat[i00], flat[i00 + 1]
+        v10, v11 = flat[i00 + w], flat[i00 + w + 1]
+        return (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
+
+
+def bilinear_taps(height: int, width: int, uv: Tensor) -> BilinearTaps:
+    """The taps of pixel coordinates ``uv`` (M, 2) (centres at +0.5) in an image of
+    ``height`` × ``width``, in ``uv``'s dtype."""
+    H, W = height, width
     x = uv[:, 0] - 0.5
     y = uv[:, 1] - 0.5
     finite = torch.isfinite(x) & torch.isfinite(y)
@@ -108,12 +129,16 @@ def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
     y0i = torch.floor(y).clamp(0, max(H - 2, 0)).long()
     fx = (x - x0i.to(x.dtype)).clamp(0, 1)
     fy = (y - y0i.to(y.dtype)).clamp(0, 1)
-    flat = img.reshape(-1)
-    i00 = y0i * W + x0i
-    v00, v01 = flat[i00], flat[i00 + 1]
-    v10, v11 = flat[i00 + W], flat[i00 + W + 1]
-    val = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
-    return val, inside
+    return BilinearTaps(W, y0i * W + x0i, fx, fy, inside)
+
+
+def bilinear_lookup(img: Tensor, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """Sample (H, W) ``img`` at pixel coordinates ``uv`` (M, 2) (centres at +0.5).
+
+    Returns (values (M,), inside (M,)); ``inside`` means within the pixel-centre hull.
+    """
+    taps = bilinear_taps(img.shape[0], img.shape[1], uv)
+    return taps.sample(img), taps.inside
 
 
 def project_in_front(camera: Camera, points: Tensor) -> tuple[Tensor, Tensor, Tensor]:

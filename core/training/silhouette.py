@@ -28,11 +28,12 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
 
-from core.render.depth_geometry import DEPTH_FACING_DEG, bilinear_lookup
+from core.render.depth_geometry import DEPTH_FACING_DEG, BilinearTaps, bilinear_taps
 from core.scene.cameras import Camera
 from core.scene.views import Scene
 from core.training.init_points import bisect_hull_boundary, inside_hull
@@ -193,6 +194,7 @@ class SilhouetteDepth:
 
     def __init__(self, pts: SilhouettePoints, cameras: Sequence[Camera]) -> None:
         self.points = pts.points
+        self._cache: dict[tuple[Any, ...], tuple[Camera, BilinearTaps, Tensor]] = {}
         cos_min = math.cos(math.radians(FACING_DEG))
         self.per_view: list[Tensor] = []
         for b, cam in enumerate(cameras):
@@ -207,15 +209,27 @@ class SilhouetteDepth:
     def counts(self) -> list[int]:
         return [int(i.numel()) for i in self.per_view]
 
+    def _taps(self, view_index: int, camera: Camera, depth: Tensor) -> tuple[BilinearTaps, Tensor]:
+        """The points' taps in this view's depth image and their depth: fixed points
+        and a fixed camera, so computed at a view's first step and kept (the same
+        values the step computed each time)."""
+        key = (view_index, depth.dtype, depth.device, depth.shape)
+        hit = self._cache.get(key)
+        if hit is not None and hit[0] is camera:
+            return hit[1], hit[2]
+        uv, z = camera.project(self.points[self.per_view[view_index]])
+        uv, z = uv.to(depth), z.to(depth)
+        taps = bilinear_taps(depth.shape[0], depth.shape[1], uv)
+        self._cache[key] = (camera, taps, z)
+        return taps, z
+
     def __call__(self, view_index: int, camera: Camera, depth: Tensor, valid: Tensor) -> Tensor:
         zero = depth.sum() * 0.0
-        idx = self.per_view[view_index]
-        if idx.numel() == 0:
+        if self.per_view[view_index].numel() == 0:
             return zero
-        uv, z = camera.project(self.points[idx])
-        uv, z = uv.to(depth), z.to(depth)
-        d, inside = bilinear_lookup(depth, uv)
-        covered, _ = bilinear_lookup(valid.to(depth), uv)
+        taps, z = self._taps(view_index, camera, depth)
+        d, inside = taps.sample(depth), taps.inside
+        covered = taps.sample(valid.to(depth))
         gap = (d - z) / (z / camera.intrinsics.fx)  # in pixel footprints, + = behind
         ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
         if not bool(ok.any()):
