@@ -79,6 +79,18 @@ def _world_normals(j, i, normal, rot):  # pragma: no cover - numba
     return w0, w1, w2
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _pixel(j, i, normal, rot, intr):  # pragma: no cover - numba
+    """Pixel (j, i)'s unit view ray d, world normal w, its two safe normalisations a
+    and b with their factors: what the forward reads, and the backward recomputes
+    instead of storing."""
+    d = _view_dir(j, i, rot, intr)
+    w = _world_normals(j, i, normal, rot)
+    a0, a1, a2, ka = _normalised(w[0], w[1], w[2])
+    b0, b1, b2, kb = _normalised(a0, a1, a2)
+    return d, w, (a0, a1, a2), ka, (b0, b1, b2), kb
+
+
 @njit(nogil=True, cache=True)
 def _forward_rows(
     lo, hi, normal, rough, alpha, rot, intr, lod_scale, top, refl, lod
@@ -86,10 +98,7 @@ def _forward_rows(
     width = normal.shape[1]
     for j in range(lo, hi):
         for i in range(width):
-            dx, dy, dz = _view_dir(j, i, rot, intr)
-            w0, w1, w2 = _world_normals(j, i, normal, rot)
-            a0, a1, a2, _ = _normalised(w0, w1, w2)
-            b0, b1, b2, _ = _normalised(a0, a1, a2)
+            (dx, dy, dz), _, _, _, (b0, b1, b2), _ = _pixel(j, i, normal, rot, intr)
             k = 2.0 * (dx * b0 + dy * b1 + dz * b2)
             refl[j, i, 0] = dx - k * b0
             refl[j, i, 1] = dy - k * b1
@@ -110,10 +119,9 @@ def _backward_rows(
     width = normal.shape[1]
     for j in range(lo, hi):
         for i in range(width):
-            dx, dy, dz = _view_dir(j, i, rot, intr)
-            w0, w1, w2 = _world_normals(j, i, normal, rot)
-            a0, a1, a2, ka = _normalised(w0, w1, w2)
-            b0, b1, b2, kb = _normalised(a0, a1, a2)
+            (dx, dy, dz), (w0, w1, w2), (a0, a1, a2), ka, (b0, b1, b2), kb = _pixel(
+                j, i, normal, rot, intr
+            )
             g0, g1 = np.float64(g_refl[j, i, 0]), np.float64(g_refl[j, i, 1])
             g2 = np.float64(g_refl[j, i, 2])
             rn = dx * b0 + dy * b1 + dz * b2
