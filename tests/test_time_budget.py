@@ -193,3 +193,39 @@ def test_a_killed_budgeted_run_resumes_with_the_time_left(tiny_scene: Path, tmp_
     used = _used(ck)
     assert used <= budget * 1.1 + 0.5  # the budget was not refilled
     assert used > used_at_kill
+
+
+def test_a_phase_a_refit_cuts_short_still_ends_with_its_row(tiny_scene: Path, tmp_path) -> None:
+    """A time budget's refit can move the next phase's mark to before the current step
+    (the machine slowed down): the phase that step ran still ends with an evaluated row,
+    labelled with the phase the step ran. (CI once recorded no geometry row at all.)"""
+    from core.scene.formats import load_scene
+    from core.training.trainer import Trainer
+
+    cfg = config_from_dict({**TINY, "iterations": 60, "eval": {"views": 1, "every": 1000}})
+    t = Trainer(load_scene(tiny_scene), cfg, tmp_path)
+    t.setup(resume=False)
+    real_step, cut = t.step, {}
+
+    def step() -> dict[str, float]:
+        out = real_step()
+        it = t.iteration
+        if not cut and t.current_phase(it - 1).name == "geometry" and it > t.marks.geometry_start:
+            for k in range(t.sched.iterations - 1, it, -1):  # the longest schedule that cuts it
+                m = Marks.of(cfg.model_copy(update={"iterations": k}))
+                if (
+                    m.geometry_start < it - 1
+                    and m.multiview_start < it
+                    and it not in m.boundaries()
+                ):
+                    t._resize_schedule(k)
+                    cut["at"] = it
+                    break
+        return out
+
+    t.step = step  # type: ignore[method-assign]
+    t.train()
+    assert cut, "no schedule moved the multi-view mark before a geometry step"
+    rows = {r["iteration"]: r["phase"] for r in t.metrics.rows()}
+    assert rows.get(cut["at"]) == "geometry"
+    assert "multiview" in rows.values()

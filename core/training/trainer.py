@@ -169,6 +169,7 @@ class Trainer:
         self.io_seconds = 0.0  # checkpoints
         self.chamfer_probes = 0  # CHAMFER_FRACTIONS passed so far
         self.skipped_steps = 0
+        self._step_phase: str | None = None  # the phase the last step ran in
         self._evaluator: ProgressEvaluator | None = None
         self._costs: dict[str, float] = {}  # mean seconds of one eval / chamfer / checkpoint
         self.metrics = MetricsLog(self.out / "metrics.jsonl")
@@ -620,7 +621,7 @@ class Trainer:
             "iteration": self.iteration,
             "wall_time": round(self.train_seconds, 4),
             "eval_seconds": round(self.eval_seconds, 4),
-            "phase": self.current_phase(self.iteration - 1).name,
+            "phase": self._ran_phase(),
             "n_gaussians": self.gaussians.num,
             "loss": losses,
             "skipped_steps": self.skipped_steps,
@@ -633,6 +634,13 @@ class Trainer:
         self.last_eval = row
         self.on_event({"type": "eval", **row})
         return row
+
+    def _ran_phase(self) -> str:
+        """The phase of the last step run (a budget's refit may since have moved the
+        marks, so the schedule can name another phase for that iteration now)."""
+        if self._step_phase is not None:
+            return self._step_phase
+        return self.current_phase(self.iteration - 1).name
 
     def _maybe_plan_view_dependence(self) -> None:
         """At the end of the RGB-only phase, decide on the env map from evidence."""
@@ -742,7 +750,10 @@ class Trainer:
             self.last_losses = losses
             it, total = self.iteration, self.sched.iterations
             boundaries = set(self.marks.boundaries())
-            if it == total or it in boundaries:
+            self._step_phase = phase
+            # a phase's end is always a row: at its mark, or where a time budget's refit
+            # moved the mark past the step that ended it
+            if it == total or it in boundaries or self.current_phase().name != phase:
                 self._record(losses, final=it == total)
             elif it % self._eval_every() == 0 and self._eval_affordable():
                 self._record(losses, cadence=True)
@@ -753,7 +764,7 @@ class Trainer:
                     "type": "progress",
                     "iteration": it,
                     "total": total,
-                    "phase": self.current_phase(it - 1).name,
+                    "phase": phase,
                     "n_gaussians": self.gaussians.num,
                     "loss": losses.get("total"),
                     "elapsed": self.train_seconds,
@@ -767,7 +778,7 @@ class Trainer:
                     bar.total = total
                 bar.update(1)
                 bar.set_postfix(
-                    phase=self.current_phase(it - 1).name,
+                    phase=phase,
                     n=self.gaussians.num,
                     psnr=f"{self.last_eval.get('psnr', float('nan')):.2f}",
                 )
