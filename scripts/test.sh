@@ -20,6 +20,7 @@ python scripts/warm_kernels.py
 echo "== pytest"
 # two workers (the machine's cores), each test file on one worker so a file's fixtures
 # (servers, trained runs) are built once, longest files first (tests/file_order.py);
-# PYTEST_WORKERS=0 runs everything in-process
+# PYTEST_WORKERS=0 runs everything in-process; the 25 slowest tests are listed at the
+# end (where the suite's time goes, for keeping CI short)
 python -m pytest -q -p no:cacheprovider -n "${PYTEST_WORKERS:-2}" --dist loadfile \
-    --no-loadscope-reorder "$@"
+    --no-loadscope-reorder --durations=25 "$@"
