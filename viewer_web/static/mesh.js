@@ -239,37 +239,45 @@ function fileLinks(artifacts) {
 
 async function showMissing(job) {
   // no asset.glb: say so, and how to make one (the mesh endpoint's `asset` field)
+  // the state turns "missing" once the box is complete (links to mesh jobs included),
+  // so whoever waits on the state reads the whole box
   const train = job.kind === "mesh" ? job.parent_id : job.id;
-  setStatus("missing", `Job ${job.id} has no relightable asset (asset.glb).`);
   const box = $("missing");
-  box.hidden = false;
   box.replaceChildren();
   const p = (text) => { const el = document.createElement("p"); el.textContent = text; box.appendChild(el); return el; };
   p(`Make one with a mesh job that also bakes the asset: POST /v1/jobs/${train}/meshes with `
     + `{"asset": {}} (fields: faces, texture_size, views, occlusion), or train with `
     + `"outputs": {"asset": true}.`);
-  if (job.kind === "train" && job.state === "succeeded") {
-    const others = (await api(`/v1/jobs/${enc(train)}/meshes?limit=50`).then((r) => r.json())).items
-      .filter((m) => m.config && m.config.asset && m.state !== "failed" && m.state !== "cancelled");
-    for (const m of others) {
-      const a = document.createElement("a");
-      a.href = `/viewer/${enc(m.id)}/mesh`; a.dataset.job = m.id;
-      a.textContent = `asset of mesh job ${m.id} (${m.state}) ↗`;
-      box.appendChild(a);
-    }
-    const btn = document.createElement("button");
-    btn.type = "button"; btn.id = "make-asset"; btn.textContent = "Bake an asset (mesh job)";
-    btn.addEventListener("click", async () => {
-      btn.disabled = true;
-      try {
-        const r = await api(`/v1/jobs/${enc(train)}/meshes`, {
-          method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ asset: {} }),
-        });
-        location.assign(`/viewer/${enc((await r.json()).id)}/mesh`);
-      } catch (e) { p(`Cannot start it: ${e.message}`); btn.disabled = false; }
-    });
-    box.appendChild(btn);
+  try {
+    if (job.kind === "train" && job.state === "succeeded") await offerAssetJobs(train, box, p);
+  } finally {
+    box.hidden = false;
+    setStatus("missing", `Job ${job.id} has no relightable asset (asset.glb).`);
   }
+}
+
+async function offerAssetJobs(train, box, p) {
+  // the training job's mesh jobs that bake an asset, and a button to start one
+  const others = (await api(`/v1/jobs/${enc(train)}/meshes?limit=50`).then((r) => r.json())).items
+    .filter((m) => m.config && m.config.asset && m.state !== "failed" && m.state !== "cancelled");
+  for (const m of others) {
+    const a = document.createElement("a");
+    a.href = `/viewer/${enc(m.id)}/mesh`; a.dataset.job = m.id;
+    a.textContent = `asset of mesh job ${m.id} (${m.state}) ↗`;
+    box.appendChild(a);
+  }
+  const btn = document.createElement("button");
+  btn.type = "button"; btn.id = "make-asset"; btn.textContent = "Bake an asset (mesh job)";
+  btn.addEventListener("click", async () => {
+    btn.disabled = true;
+    try {
+      const r = await api(`/v1/jobs/${enc(train)}/meshes`, {
+        method: "POST", headers: { "Content-Type": "application/json" }, body: JSON.stringify({ asset: {} }),
+      });
+      location.assign(`/viewer/${enc((await r.json()).id)}/mesh`);
+    } catch (e) { p(`Cannot start it: ${e.message}`); btn.disabled = false; }
+  });
+  box.appendChild(btn);
 }
 
 async function loadAsset(artifacts) {
