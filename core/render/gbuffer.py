@@ -110,9 +110,6 @@ class GBuffer:
         return torch.where(covered, self.z_blend / torch.where(covered, self.alpha, 1.0), 0.0)
 
 
-_C_BASE, _C_NORMAL, _C_PLANE, _C_WR, _C_Z, _C_ROUGH = slice(0, 3), slice(3, 6), 6, 7, 8, 9
-
-
 def gbuffer_features(
     means: Tensor,
     colors: Tensor | None,
@@ -222,9 +219,6 @@ def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
 
 
 # channels of a geometry-only pass: normal (3), D, centre z
-_G_NORMAL, _G_PLANE, _G_Z = slice(0, 3), 3, 4
-
-
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,
@@ -272,8 +266,10 @@ def render_gbuffer_tensors(
         feats = gbuffer_features(
             means, colors, normals_world, w_r, camera, roughness=roughness, held=held
         )
+    # the columns as gbuffer_features laid them out
+    lay = FeatureLayout(geometry_only, roughness is not None and not geometry_only, held)
     if near is None:
-        near = near_plane(feats[:, _G_Z if geometry_only else _C_Z])
+        near = near_plane(feats[:, lay.z])
     res = rasterize(
         means,
         quats,
@@ -291,23 +287,21 @@ def render_gbuffer_tensors(
     f = res.features
     if geometry_only:
         zero = f.new_zeros(f.shape[:-1])
-        base, w_r_img, rough = zero[..., None].expand(*zero.shape, 3), zero, None
-        normal, plane, z = f[..., _G_NORMAL], f[..., _G_PLANE], f[..., _G_Z]
+        base, w_r_img = zero[..., None].expand(*zero.shape, 3), zero
     else:
-        base, w_r_img = f[..., _C_BASE], f[..., _C_WR]
-        rough = None if roughness is None else f[..., _C_ROUGH]
-        normal, plane, z = f[..., _C_NORMAL], f[..., _C_PLANE], f[..., _C_Z]
+        base, w_r_img = f[..., 0:3], f[..., lay.plane + 1]
+    h = lay.held_start
     gb = GBuffer(
         base=base,
-        normal=normal,
-        plane_dist=plane,
+        normal=f[..., lay.normal : lay.normal + 3],
+        plane_dist=f[..., lay.plane],
         w_r=w_r_img,
         alpha=res.alpha,
         camera=camera,
-        z_blend=z,
-        roughness=rough,
-        normal_held=f[..., -4:-1] if held else None,
-        plane_dist_held=f[..., -1] if held else None,
+        z_blend=f[..., lay.z],
+        roughness=f[..., lay.z + 1] if lay.roughness else None,
+        normal_held=f[..., h : h + 3] if held else None,
+        plane_dist_held=f[..., h + 3] if held else None,
         min_alpha=min_alpha,
         min_cos=min_cos,
     )
