@@ -10,6 +10,11 @@ for s in scripts/services.sh scripts/browser.sh scripts/gltf_validator.sh; do
     if [ -f "$s" ]; then bash "$s"; fi
 done
 . .venv/bin/activate
+# bytecode caches: uv installs packages without .pyc files, and an environment with
+# PYTHONDONTWRITEBYTECODE set (this machine's, CI's) then compiles ~1,250 modules from
+# source in every Python process the suite starts (servers, jobs, CLI runs: ~4 s each
+# on 2 cores). Unset here, the first import writes each cache and the rest read it.
+unset PYTHONDONTWRITEBYTECODE
 echo "== ruff"
 ruff check .
 ruff format --check .
