@@ -1,14 +1,19 @@
-"""The fused Adam kernel against the plain loop it replaced: same parameters after steps,
-densification's state surgery and a checkpoint written by the plain one."""
+"""Glint's Adam (fused kernel or plain update) against torch.optim.Adam: same parameters
+after steps, densification's state surgery, checkpoints written by either class."""
 
 from __future__ import annotations
 
 import copy
+import subprocess
+import sys
+from pathlib import Path
 
+import pytest
 import torch
 
 from core.config import TrainConfig
 from core.render.gaussians import Gaussians
+from core.training.adam import Adam
 from core.training.optim import (
     adam,
     append_zero_rows,
@@ -16,6 +21,7 @@ from core.training.optim import (
     make_optimizers,
     replace_param,
     select_rows,
+    set_lr,
 )
 
 
@@ -25,7 +31,7 @@ def _model(seed: int = 0) -> Gaussians:
     return Gaussians.from_points(pts, torch.rand(300, 3, generator=g), sh_degree=3, radius=1.0)
 
 
-def _plain(model: Gaussians, fused: dict[str, torch.optim.Adam]) -> dict[str, torch.optim.Adam]:
+def _plain(model: Gaussians, fused: dict[str, Adam]) -> dict[str, torch.optim.Adam]:
     out = {}
     for k, o in fused.items():
         group = o.param_groups[0]
@@ -93,3 +99,98 @@ def test_adam_falls_back_where_no_fused_kernel_applies() -> None:
     p.grad = torch.ones_like(p)
     opt.step()  # the plain implementation takes what the fused kernel refuses
     assert torch.isfinite(torch.view_as_real(p.detach())).all()
+
+
+# --- core.training.adam.Adam against torch.optim.Adam (the reference) -----------------
+
+
+def _pair(fused: bool, dtype: torch.dtype, seed: int = 3):
+    g = torch.Generator().manual_seed(seed)
+    x = torch.randn(40, 3, generator=g, dtype=dtype)
+    mine = torch.nn.Parameter(x.clone())
+    ref = torch.nn.Parameter(x.clone())
+    ours = Adam([mine], lr=0.05, eps=1e-15, fused=fused)
+    theirs = torch.optim.Adam([ref], lr=0.05, eps=1e-15, fused=fused or None)
+    return mine, ref, ours, theirs
+
+
+def _grad_steps(pairs, steps: range, seed: int = 7) -> None:
+    g = torch.Generator().manual_seed(seed)
+    for i in steps:
+        grad = None
+        for p, opt in pairs:
+            if grad is None:
+                grad = torch.randn(p.shape, generator=g, dtype=p.dtype) * (1 + i)
+            p.grad = grad.clone()
+            opt.step()
+            if i == 3:
+                set_lr(opt, 0.01)  # a schedule changes the rate between steps
+
+
+@pytest.mark.parametrize("fused", [True, False])
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_adam_matches_torch_optim_adam(fused: bool, dtype: torch.dtype) -> None:
+    mine, ref, ours, theirs = _pair(fused, dtype)
+    _grad_steps([(mine, ours), (ref, theirs)], range(8))
+    tol = {"rtol": 1e-6, "atol": 1e-7} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 0}
+    torch.testing.assert_close(mine.detach(), ref.detach(), **tol)
+    for name in ("exp_avg", "exp_avg_sq", "step"):
+        torch.testing.assert_close(ours.state[mine][name], theirs.state[ref][name], **tol)
+
+
+def test_fused_and_plain_updates_agree() -> None:
+    a, _, fused, _ = _pair(True, torch.float32)
+    b, _, plain, _ = _pair(False, torch.float32)
+    _grad_steps([(a, fused), (b, plain)], range(12))
+    torch.testing.assert_close(a.detach(), b.detach(), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("fused", [True, False])
+def test_state_dicts_load_across_both_classes_and_resume_equal(fused: bool) -> None:
+    mine, ref, ours, theirs = _pair(fused, torch.float32)
+    _grad_steps([(mine, ours), (ref, theirs)], range(3))
+    from_ours = copy.deepcopy(ours.state_dict())  # as torch.save would
+    from_theirs = copy.deepcopy(theirs.state_dict())
+    assert from_ours["param_groups"][0].keys() == from_theirs["param_groups"][0].keys()
+    # swap: torch.optim.Adam resumes our state, ours resumes torch's
+    p1 = torch.nn.Parameter(mine.detach().clone())
+    p2 = torch.nn.Parameter(ref.detach().clone())
+    t_opt = torch.optim.Adam([p1], lr=1.0, fused=fused or None)
+    t_opt.load_state_dict(from_ours)
+    o_opt = Adam([p2], lr=1.0, fused=fused)
+    o_opt.load_state_dict(from_theirs)
+    assert o_opt.param_groups[0]["lr"] == 0.05  # the saved rate, as torch.optim loads it
+    assert bool(o_opt.param_groups[0]["fused"]) is fused
+    _grad_steps([(p1, t_opt), (p2, o_opt), (mine, ours)], range(3, 7), seed=11)
+    torch.testing.assert_close(p1.detach(), mine.detach(), rtol=1e-6, atol=1e-7)
+    torch.testing.assert_close(p2.detach(), mine.detach(), rtol=1e-6, atol=1e-7)
+
+
+def test_a_state_for_other_parameters_is_refused() -> None:
+    p, q = torch.nn.Parameter(torch.zeros(3)), torch.nn.Parameter(torch.zeros(3))
+    two = torch.optim.Adam([p, q], lr=0.1)
+    with pytest.raises(ValueError, match="group of 2 parameters, expected 1"):
+        Adam([torch.nn.Parameter(torch.zeros(3))], lr=0.1).load_state_dict(two.state_dict())
+    with pytest.raises(ValueError, match="out of range"):
+        Adam([p], lr=-1.0)
+    with pytest.raises(ValueError, match="fused kernel"):
+        Adam([torch.nn.Parameter(torch.zeros(3, dtype=torch.complex64))], lr=0.1, fused=True)
+
+
+def test_a_training_step_does_not_import_torch_dynamo() -> None:
+    """The reason for the class: torch.optim imports torch._dynamo (1.6-2 s) on first use."""
+    code = (
+        "import sys, torch\n"
+        "from core.config import TrainConfig\n"
+        "from core.render.gaussians import Gaussians\n"
+        "from core.training.optim import make_optimizers\n"
+        "x = torch.randn(50, 3)\n"
+        "g = Gaussians.from_points(x, x.abs() % 1, sh_degree=3, radius=1.0)\n"
+        "opts = make_optimizers(g, TrainConfig(), 1.0)\n"
+        "for p in g.params.values(): p.grad = torch.ones_like(p)\n"
+        "for o in opts.values(): o.step(); o.zero_grad()\n"
+        "assert 'torch._dynamo' not in sys.modules, 'torch._dynamo was imported'\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    res = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr[-2000:]

@@ -41,6 +41,7 @@ from core.config import TrainConfig
 from core.model.schedule import opacity_reset_every
 from core.render.gaussians import Gaussians, scalar_logit
 from core.render.rotations import normalize_quats, quat_to_rotmat
+from core.training.adam import Adam
 from core.training.optim import gather_rows, replace_param
 
 if TYPE_CHECKING:
@@ -139,7 +140,7 @@ class DensifyStrategy:
     def step_post_backward(
         self,
         gaussians: Gaussians,
-        optimizers: dict[str, torch.optim.Optimizer],
+        optimizers: dict[str, Adam],
         result: RasterResult,
         iteration: int,
         width: int,
@@ -211,7 +212,7 @@ class DensifyStrategy:
 
     # -- grow + prune -----------------------------------------------------------
     def _refine(
-        self, gaussians: Gaussians, optimizers: dict[str, torch.optim.Optimizer], iteration: int
+        self, gaussians: Gaussians, optimizers: dict[str, Adam], iteration: int
     ) -> dict[str, int]:
         assert self.grad2d is not None and self.count is not None and self.max_radii is not None
         p = gaussians.params
@@ -291,7 +292,7 @@ class DensifyStrategy:
     @staticmethod
     def _apply(
         gaussians: Gaussians,
-        optimizers: dict[str, torch.optim.Optimizer],
+        optimizers: dict[str, Adam],
         values: dict[str, Tensor],
         src: Tensor,
     ) -> None:
@@ -311,7 +312,7 @@ class DensifyStrategy:
 
     # -- opacity reset -------------------------------------------------------
     @staticmethod
-    def _reset_opacity(gaussians: Gaussians, optimizers: dict[str, torch.optim.Optimizer]) -> None:
+    def _reset_opacity(gaussians: Gaussians, optimizers: dict[str, Adam]) -> None:
         """opacity ← min(opacity, 0.01) in logit space; its Adam moments restart from zero."""
         logits = gaussians.params["opacity_logits"]
         logits.data.clamp_(max=scalar_logit(RESET_OPACITY))

@@ -16,11 +16,10 @@ from core.config import TrainConfig
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.grazing import GRAZE_KEY
 from core.render.roughness import ROUGH_KEY
+from core.training.adam import Adam
 
 
-def make_optimizers(
-    g: Gaussians, cfg: TrainConfig, scene_radius: float
-) -> dict[str, torch.optim.Adam]:
+def make_optimizers(g: Gaussians, cfg: TrainConfig, scene_radius: float) -> dict[str, Adam]:
     lr = cfg.lr
     rates = {
         "means": lr.means_init * scene_radius,
@@ -38,27 +37,19 @@ def make_optimizers(
     }
 
 
-# devices with a fused Adam kernel in torch (for floating-point tensors)
-FUSED_DEVICES = ("cpu", "cuda")
-
-
-def adam(params: list[Tensor], *, lr: float, eps: float = 1e-8) -> torch.optim.Adam:
+def adam(params: list[Tensor], *, lr: float, eps: float = 1e-8) -> Adam:
     """Adam with torch's fused kernel where it has one for these tensors: one pass per
     tensor instead of a dozen elementwise ops (3.3 -> 0.7 ms for a 20k-Gaussian model's
-    eight groups on one CPU core; equal to the plain loop to float32 rounding, tested).
-    Otherwise the plain implementation."""
-    fused = all(p.is_floating_point() and p.device.type in FUSED_DEVICES for p in params)
-    return torch.optim.Adam(params, lr=lr, eps=eps, betas=(0.9, 0.999), fused=fused or None)
+    eight groups on one CPU core; equal to the plain update to float32 rounding, tested).
+    Otherwise the plain update (core/training/adam.py says why not torch.optim)."""
+    return Adam(params, lr=lr, eps=eps, betas=(0.9, 0.999))
 
 
-def load_adam_state(opt: torch.optim.Optimizer, state: dict) -> None:
-    """Load a saved Adam state, keeping this optimizer's kernel choice: a checkpoint
-    written before the fused kernel (``fused: None`` in its groups) would switch it off."""
-    fused = [group.get("fused") for group in opt.param_groups]
+def load_adam_state(opt: Adam, state: dict) -> None:
+    """Load a saved Adam state (this class's or torch.optim.Adam's), keeping this
+    optimizer's kernel choice: a checkpoint written before the fused kernel (``fused:
+    None`` in its groups) does not switch it off."""
     opt.load_state_dict(state)
-    for group, was in zip(opt.param_groups, fused, strict=True):
-        if was:
-            group["fused"], group["foreach"] = True, None
 
 
 def means_lr(cfg: TrainConfig, iteration: int, scene_radius: float) -> float:
@@ -68,14 +59,12 @@ def means_lr(cfg: TrainConfig, iteration: int, scene_radius: float) -> float:
     return math.exp(hi * (1 - t) + lo * t) * scene_radius
 
 
-def set_lr(opt: torch.optim.Optimizer, value: float) -> None:
+def set_lr(opt: Adam, value: float) -> None:
     for group in opt.param_groups:
         group["lr"] = value
 
 
-def replace_param(
-    opt: torch.optim.Optimizer, new: torch.nn.Parameter, state_fn: Callable[[Tensor], Tensor]
-) -> None:
+def replace_param(opt: Adam, new: torch.nn.Parameter, state_fn: Callable[[Tensor], Tensor]) -> None:
     """Swap the optimizer's single parameter for ``new``, mapping per-row state with ``state_fn``.
 
     Every state tensor shaped like the old parameter (Adam's ``exp_avg``, ``exp_avg_sq``,

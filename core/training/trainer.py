@@ -45,6 +45,7 @@ from core.render.shading import ShadeResult, deferred_shade
 from core.render.view_opacity import view_opacity_scale
 from core.scene.views import Scene, View
 from core.stages import stage
+from core.training.adam import Adam
 from core.training.budget import TimeBudget
 from core.training.densify import DensifyStrategy
 from core.training.init_points import visual_hull_points
@@ -178,7 +179,7 @@ class Trainer:
         self.plan: ScenePlan = plan_scene(scene, cfg)
         self.gaussians: Gaussians
         self.envmap: EnvMap | None = None
-        self.optimizers: dict[str, torch.optim.Optimizer] = {}
+        self.optimizers: dict[str, Adam] = {}
         self.strategy = DensifyStrategy(cfg, self.radius)
         self.silhouette: SilhouetteDepth | None = None
         self.last_eval: dict[str, Any] = {}
@@ -262,10 +263,8 @@ class Trainer:
             return None
         return max(0.0, self.budget.seconds - self.used_seconds)
 
-    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        opts: dict[str, torch.optim.Optimizer] = dict(
-            make_optimizers(self.gaussians, self.cfg, self.radius)
-        )
+    def _make_optimizers(self) -> dict[str, Adam]:
+        opts: dict[str, Adam] = dict(make_optimizers(self.gaussians, self.cfg, self.radius))
         if self.envmap is not None:
             opts["envmap"] = adam(list(self.envmap.parameters()), lr=self.cfg.lr.envmap)
         return opts
