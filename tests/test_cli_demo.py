@@ -27,6 +27,7 @@ def test_a_finished_run_with_another_config_is_refused_not_reported(tmp_path, ca
     --overwrite trains again."""
     out = tmp_path / "demo"
     base = ["demo", "--out", str(out), "--size", "24", "--iterations", "30", "--quiet"]
+    base += ["--set", "outputs.mesh_resolution=48"]  # the mesh is not what this is about
     assert main(base) == 0
     capsys.readouterr()
     assert main(base) == 0  # the same configuration: the finished run is reported again
