@@ -4,4 +4,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
 . .venv/bin/activate
+# write bytecode caches even where PYTHONDONTWRITEBYTECODE is set: uv installs packages
+# without them, and each run would otherwise compile ~1,250 modules again (~4 s)
+unset PYTHONDONTWRITEBYTECODE
 glint demo "$@"
