@@ -11,7 +11,10 @@ fi
 . .venv/bin/activate
 python -m pip install -q --upgrade pip >/dev/null
 if ! python -c "import torch" 2>/dev/null; then
-    python -m pip install -q "torch==${BOOTSTRAP_TORCH_VERSION:-2.13.0}"
+    # --no-compile: pip would byte-compile all of torch's files on one core (29 s of 36 here);
+    # the modules Glint imports get their caches on first import instead (scripts/test.sh
+    # and scripts/demo.sh let Python write them), as uv leaves it for every other package
+    python -m pip install -q --no-compile "torch==${BOOTSTRAP_TORCH_VERSION:-2.13.0}"
 fi
 # the HTTP client (client/, distribution glint-client) adds `glint remote` to `glint`.
 # uv resolves and installs the rest in seconds where pip takes a minute (it keeps the torch installed above,
