@@ -483,7 +483,7 @@ def _nested(flat: dict) -> dict:
 
 def _register_eval(sub: argparse._SubParsersAction) -> None:
     from core.benchmark.configs import CONFIGS
-    from core.evaluation.geometry import DEFAULT_CHAMFER_POINTS
+    from core.evaluation import DEFAULT_CHAMFER_POINTS
 
     threads = {
         "type": int,

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
+from core.evaluation import DEFAULT_CHAMFER_POINTS
 from core.evaluation.metrics import depth_error, normal_angle_error_deg
 from core.model.frame import Frame
 from core.model.trained import TrainedModel
@@ -24,7 +25,6 @@ from core.scene.views import View
 if TYPE_CHECKING:
     import trimesh
 
-DEFAULT_CHAMFER_POINTS = 1_000_000  # the data README's sampling floor is stated for 1M
 SURFACE_ALPHA = 0.5  # pixels the model covers at least this much are scored
 # per-view errors against GT maps, averaged over views (depth_bias: median signed error)
 GEOMETRY_KEYS = ("normal_error_deg", "depth_abs_error", "depth_rel_error", "depth_bias")
