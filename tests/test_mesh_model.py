@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import gc
 import json
 import weakref
 from pathlib import Path
@@ -48,7 +47,8 @@ def test_fusion_holds_one_frame_at_a_time() -> None:
     calls: list[int] = []
 
     def frame_at(i: int) -> DepthFrame:
-        gc.collect()
+        # no gc.collect(): a frame must be freed as soon as fusion drops it (reference
+        # counting), not at the next collection (each collect cost ~0.3 s in a test worker)
         r = render_synthetic_view(cams[i], shape="sphere", kind="diffuse", samples=1)
         f = DepthFrame(cams[i], r.depth, (r.depth > 0) & (r.alpha > 0.5), r.alpha < 0.05)
         refs.append(weakref.ref(f))
