@@ -210,7 +210,8 @@ def stage_build(kit: Kit) -> dict[str, Any]:
 
 
 def stage_tests(kit: Kit) -> dict[str, Any]:
-    tests = ["tests/test_raster_cuda.py", "tests/test_cuda_paths_twin.py", "tests/test_envmap.py"]
+    tests = ["tests/test_raster_cuda.py", "tests/test_cuda_paths_twin.py", "tests/test_envmap.py",
+             "tests/test_optim_fused.py"]  # fmt: skip
     cmd = [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-rs", *tests]
     if kit.dry:
         # the stage's machinery on the CPU twins; the twin training run (13 s) is left

@@ -104,9 +104,12 @@ def test_adam_falls_back_where_no_fused_kernel_applies() -> None:
 # --- core.training.adam.Adam against torch.optim.Adam (the reference) -----------------
 
 
-def _pair(fused: bool, dtype: torch.dtype, seed: int = 3):
+CUDA = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+def _pair(fused: bool, dtype: torch.dtype, seed: int = 3, device: str = "cpu"):
     g = torch.Generator().manual_seed(seed)
-    x = torch.randn(40, 3, generator=g, dtype=dtype)
+    x = torch.randn(40, 3, generator=g, dtype=dtype).to(device)
     mine = torch.nn.Parameter(x.clone())
     ref = torch.nn.Parameter(x.clone())
     ours = Adam([mine], lr=0.05, eps=1e-15, fused=fused)
@@ -120,22 +123,24 @@ def _grad_steps(pairs, steps: range, seed: int = 7) -> None:
         grad = None
         for p, opt in pairs:
             if grad is None:
-                grad = torch.randn(p.shape, generator=g, dtype=p.dtype) * (1 + i)
+                grad = torch.randn(p.shape, generator=g, dtype=p.dtype).to(p.device) * (1 + i)
             p.grad = grad.clone()
             opt.step()
             if i == 3:
                 set_lr(opt, 0.01)  # a schedule changes the rate between steps
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=CUDA)])
 @pytest.mark.parametrize("fused", [True, False])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_adam_matches_torch_optim_adam(fused: bool, dtype: torch.dtype) -> None:
-    mine, ref, ours, theirs = _pair(fused, dtype)
+def test_adam_matches_torch_optim_adam(fused: bool, dtype: torch.dtype, device: str) -> None:
+    mine, ref, ours, theirs = _pair(fused, dtype, device=device)
     _grad_steps([(mine, ours), (ref, theirs)], range(8))
     tol = {"rtol": 1e-6, "atol": 1e-7} if dtype == torch.float32 else {"rtol": 1e-12, "atol": 0}
     torch.testing.assert_close(mine.detach(), ref.detach(), **tol)
     for name in ("exp_avg", "exp_avg_sq", "step"):
         torch.testing.assert_close(ours.state[mine][name], theirs.state[ref][name], **tol)
+        assert ours.state[mine][name].device == theirs.state[ref][name].device
 
 
 def test_fused_and_plain_updates_agree() -> None:
