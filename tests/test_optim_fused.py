@@ -15,9 +15,7 @@ from core.config import TrainConfig
 from core.render.gaussians import Gaussians
 from core.training.adam import Adam
 from core.training.optim import (
-    adam,
     append_zero_rows,
-    load_adam_state,
     make_optimizers,
     replace_param,
     select_rows,
@@ -85,7 +83,7 @@ def test_a_plain_checkpoint_resumes_fused_and_stays_equal() -> None:
     b.params = {k: torch.nn.Parameter(v.detach().clone()) for k, v in a.params.items()}
     resumed = make_optimizers(b, TrainConfig(), 1.0)
     for k, o in resumed.items():
-        load_adam_state(o, saved[k])
+        o.load_state_dict(saved[k])
         assert o.param_groups[0]["fused"] is True  # the old groups said fused: None
     for i in range(1, 4):
         _step([a, b], [old, resumed], i)
@@ -94,7 +92,7 @@ def test_a_plain_checkpoint_resumes_fused_and_stays_equal() -> None:
 
 def test_adam_falls_back_where_no_fused_kernel_applies() -> None:
     p = torch.nn.Parameter(torch.zeros(3, dtype=torch.complex64))
-    opt = adam([p], lr=0.1)
+    opt = Adam([p], lr=0.1)
     assert not opt.param_groups[0]["fused"]
     p.grad = torch.ones_like(p)
     opt.step()  # the plain implementation takes what the fused kernel refuses

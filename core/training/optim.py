@@ -33,23 +33,8 @@ def make_optimizers(g: Gaussians, cfg: TrainConfig, scene_radius: float) -> dict
         ROUGH_KEY: lr.roughness,
     }
     return {
-        k: adam([g.params[k]], lr=rates[k], eps=1e-15) for k in g.params if k not in UNTRAINED_KEYS
+        k: Adam([g.params[k]], lr=rates[k], eps=1e-15) for k in g.params if k not in UNTRAINED_KEYS
     }
-
-
-def adam(params: list[Tensor], *, lr: float, eps: float = 1e-8) -> Adam:
-    """Adam with torch's fused kernel where it has one for these tensors: one pass per
-    tensor instead of a dozen elementwise ops (3.3 -> 0.7 ms for a 20k-Gaussian model's
-    eight groups on one CPU core; equal to the plain update to float32 rounding, tested).
-    Otherwise the plain update (core/training/adam.py says why not torch.optim)."""
-    return Adam(params, lr=lr, eps=eps, betas=(0.9, 0.999))
-
-
-def load_adam_state(opt: Adam, state: dict) -> None:
-    """Load a saved Adam state (this class's or torch.optim.Adam's), keeping this
-    optimizer's kernel choice: a checkpoint written before the fused kernel (``fused:
-    None`` in its groups) does not switch it off."""
-    opt.load_state_dict(state)
 
 
 def means_lr(cfg: TrainConfig, iteration: int, scene_radius: float) -> float:

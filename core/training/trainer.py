@@ -56,7 +56,7 @@ from core.training.losses import (
     scale_loss,
     single_view_loss,
 )
-from core.training.optim import adam, load_adam_state, make_optimizers, means_lr, set_lr
+from core.training.optim import make_optimizers, means_lr, set_lr
 from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
 from core.training.silhouette import SilhouetteDepth, silhouette_points
 
@@ -266,7 +266,7 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, Adam]:
         opts: dict[str, Adam] = dict(make_optimizers(self.gaussians, self.cfg, self.radius))
         if self.envmap is not None:
-            opts["envmap"] = adam(list(self.envmap.parameters()), lr=self.cfg.lr.envmap)
+            opts["envmap"] = Adam(self.envmap.parameters(), lr=self.cfg.lr.envmap)
         return opts
 
     @property
@@ -332,7 +332,7 @@ class Trainer:
         self._prepare_silhouette()
         for k, o in self.optimizers.items():
             if k in x["optimizers"]:
-                load_adam_state(o, x["optimizers"][k])
+                o.load_state_dict(x["optimizers"][k])
         self.strategy.load_state_dict(x["densify"])
         self.iteration = int(x["iteration"])
         self.train_seconds = float(x["train_seconds"])
