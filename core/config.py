@@ -108,6 +108,12 @@ class LossWeights(_Strict):
         description="weight of the silhouette-point depth loss (mean |error| in pixel "
         "footprints; masked captures only, see core/training/silhouette.py)",
     )
+    mask: float = Field(
+        2.0,
+        ge=0,
+        le=MAX_LOSS_WEIGHT,
+        description="weight of mean |alpha − mask| of a masked view (ablation.mask_coverage)",
+    )
 
 
 class LearningRates(_Strict):
@@ -200,6 +206,12 @@ class Ablation(_Strict):
         description="False: every splat reflects one direction (the paper's Eq. 9, a mirror "
         "lookup); True: each splat learns a roughness and reads the env map's mip chain at "
         "the level it gives (core/render/roughness.py, core/render/envmap_mips.py)",
+    )
+    mask_coverage: bool = Field(
+        True,
+        description="False: coverage is fitted only through the colours composited over the "
+        "background (the paper's); True: masked views also fit the rendered alpha to the "
+        "mask (loss.mask), which sees a halo or a hole whatever the colours",
     )
 
 

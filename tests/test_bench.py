@@ -246,13 +246,14 @@ def test_bench_configs_take_a_time_budget() -> None:
 
 def test_paper_row_switches_off_every_addition_and_full_keeps_them() -> None:
     additions = ("silhouette", "one_sided", "grazing_opacity", "same_surface_normals",
-                 "facing_depth", "roughness")  # fmt: skip
+                 "facing_depth", "roughness", "mask_coverage")  # fmt: skip
     paper, full = bench_config("paper", 300, 0.5), bench_config("full", 300, 0.5)
     for name in additions:
         assert getattr(paper.ablation, name) is False, name
         assert getattr(full.ablation, name) is True, name
     assert bench_config("all_angles", 300, 0.5).ablation.facing_depth is False
     assert bench_config("central_normals", 300, 0.5).ablation.same_surface_normals is False
+    assert bench_config("no_mask_loss", 300, 0.5).ablation.mask_coverage is False
     rough = bench_config("no_roughness", 300, 0.5)
     assert rough.ablation.roughness is False and rough.ablation.deferred_shading is True
     assert rough.plan_overrides == {"envmap": True}  # the env map stays: only mirror lookups

@@ -13,6 +13,7 @@ from core.render.gbuffer import planar_depth
 from core.scene.cameras import Camera, Intrinsics
 from core.training.losses import (
     edge_weight,
+    mask_loss,
     multi_view_loss,
     rgb_loss,
     scale_loss,
@@ -67,6 +68,26 @@ def test_separable_ssim_matches_the_2d_window(h: int, w: int, c: int):
     plain.backward()
     assert a.grad is not None and b.grad is not None
     torch.testing.assert_close(a.grad, b.grad, rtol=1e-9, atol=1e-14)
+
+
+def test_mask_loss_is_mean_coverage_error_and_pulls_alpha_toward_the_mask():
+    """|alpha − mask| averaged over every pixel: 0 on the mask itself (antialiased edge
+    values included); a halo outside and a hole inside each cost their area, and the
+    gradient lowers the one and raises the other, whatever colour either has."""
+    mask = torch.zeros(8, 8)
+    mask[2:6, 2:6] = 1.0
+    mask[2:6, 6] = 0.25  # an antialiased edge column
+    assert float(mask_loss(mask.clone(), mask)) == 0.0
+    alpha = mask.clone()
+    alpha[0, :] = 0.5  # halo: 8 px at 0.5 outside
+    alpha[3, 3] = 0.0  # hole: 1 px inside
+    alpha.requires_grad_(True)
+    loss = mask_loss(alpha, mask)
+    assert float(loss) == pytest.approx((8 * 0.5 + 1.0) / 64)
+    loss.backward()
+    assert bool((alpha.grad[0, :] > 0).all()) and float(alpha.grad[3, 3]) < 0
+    with pytest.raises(ValueError, match="differ"):
+        mask_loss(torch.zeros(8, 8), torch.zeros(4, 4))
 
 
 def test_scale_loss_is_mean_smallest_scale():

@@ -290,3 +290,40 @@ def test_silhouette_term_reads_the_planar_depth_with_normals_held(
     for plain, sil in pairs:
         torch.testing.assert_close(sil, plain, rtol=1e-5, atol=1e-6)
         assert (sil is plain) != held
+
+
+@pytest.mark.parametrize("case", ["masked", "unmasked", "switched off"])
+def test_mask_term_is_the_coverage_error_of_masked_views_only(
+    tiny_scene, tmp_path, monkeypatch, case
+):
+    """loss.mask weighs mean |alpha − mask| of the trained view; a capture without masks,
+    or ablation.mask_coverage off, has no such term (and pays nothing for it)."""
+    from dataclasses import replace
+
+    import core.training.trainer as tr
+    from core.training.losses import mask_loss
+
+    scene = tiny_scene
+    if case == "unmasked":
+        scene = replace(scene, train=[replace(v, mask=None) for v in scene.train])
+    cfg = config_from_dict({
+        **TINY, "iterations": 10, "loss": {"mask": 2.0},
+        "ablation": {"mask_coverage": case != "switched off"},
+    })  # fmt: skip
+    t = Trainer(scene, cfg, tmp_path)
+    t.setup(resume=False)
+    seen: list[tuple[torch.Tensor, torch.Tensor]] = []
+
+    def spy(alpha, mask):
+        seen.append((alpha.detach().clone(), mask))
+        return mask_loss(alpha, mask)
+
+    monkeypatch.setattr(tr, "mask_loss", spy)
+    losses = t.step()
+    if case == "masked":
+        assert len(seen) == 1
+        alpha, mask = seen[0]
+        assert losses["mask"] == pytest.approx(2.0 * float(mask_loss(alpha, mask)), rel=1e-5)
+        assert losses["mask"] > 0
+    else:
+        assert not seen and "mask" not in losses

@@ -1,6 +1,6 @@
 """The benchmark's configurations: the paper's Table 3 ablations, Glint's additions
 switched off (silhouette points, one-sided splats, grazing opacity, roughness-aware
-reflection; all off = the paper's full model) and an SH-only baseline."""
+reflection, the mask term; all off = the paper's full model) and an SH-only baseline."""
 
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "central_normals": {"same_surface_normals": False},
     "all_angles": {"facing_depth": False},
     "sil_turns_normals": {"silhouette_holds_normals": False},
+    "no_mask_loss": {"mask_coverage": False},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -32,6 +33,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "same_surface_normals": False,
         "facing_depth": False,
         "roughness": False,
+        "mask_coverage": False,
     },
     "sh_only": {
         "deferred_shading": False,
@@ -42,6 +44,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "grazing_opacity": False,
         "same_surface_normals": False,
         "facing_depth": False,
+        "mask_coverage": False,
     },
 }
 LABELS = {
@@ -57,8 +60,10 @@ LABELS = {
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
     "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
+    "no_mask_loss": "w/o the mask term (coverage fitted through the colours only)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
-    "points, grazing opacity, same-surface depth normals, facing-only depth losses)",
+    "points, grazing opacity, same-surface depth normals, facing-only depth losses, the "
+    "mask term)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
@@ -75,6 +80,7 @@ TABLE_ORDER = (
     "central_normals",
     "all_angles",
     "sil_turns_normals",
+    "no_mask_loss",
     "paper",
     "full",
 )

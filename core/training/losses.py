@@ -23,6 +23,20 @@ def rgb_loss(img: Tensor, ref: Tensor, l1_weight: float = 0.8) -> Tensor:
     return l1_weight * l1 + (1.0 - l1_weight) * (1.0 - ssim(img, ref))
 
 
+def mask_loss(alpha: Tensor, mask: Tensor) -> Tensor:
+    """Mean |alpha − mask| over the image: the rendered coverage against the view's mask
+    (antialiased masks are coverages too).
+
+    Why a term of its own: the RGB loss sees coverage only through the contrast between
+    the object and the background it is composited over, so on a white background a
+    bright object's halo, or a half-transparent patch of it, costs almost nothing there
+    and shows in every render on another background. The mask sees both whatever the
+    colours."""
+    if alpha.shape != mask.shape:
+        raise ValueError(f"alpha {tuple(alpha.shape)} and mask {tuple(mask.shape)} differ")
+    return (alpha - mask.to(alpha)).abs().mean()
+
+
 def scale_loss(scales: Tensor) -> Tensor:
     """Eq. 7: mean of each Gaussian's smallest scale (drives them flat)."""
     if scales.numel() == 0:

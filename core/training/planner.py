@@ -198,7 +198,10 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     every_view_masked = all(v.mask is not None for v in scene.train)
     mv = decide_multi_view(cfg, with_nb, len(cams), every_view_masked, silhouette, mv_evidence)
     if scene.has_masks:
-        bg = Decision("masked", f"alpha/masks present: composite over {cfg.background}", {})
+        reason = f"alpha/masks present: composite over {cfg.background}"
+        if cfg.ablation.mask_coverage and cfg.loss.mask > 0:
+            reason += f"; rendered coverage fitted to them (loss.mask = {cfg.loss.mask:g})"
+        bg = Decision("masked", reason, {})
     else:
         bg = Decision("unmasked", "no alpha or masks: images used as they are", {})
     if cfg.ablation.deferred_shading:

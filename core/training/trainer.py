@@ -51,6 +51,7 @@ from core.training.densify import DensifyStrategy
 from core.training.init_points import visual_hull_points
 from core.training.losses import (
     edge_weight,
+    mask_loss,
     multi_view_loss,
     rgb_loss,
     scale_loss,
@@ -425,6 +426,8 @@ class Trainer:
         with stage("rgb_loss"):
             target = view.composited(bg)
             terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
+            if cfg.ablation.mask_coverage and cfg.loss.mask > 0 and view.mask is not None:
+                terms["mask"] = cfg.loss.mask * mask_loss(gb.alpha, view.mask)
             if phase.scale_loss and cfg.loss.scale > 0:
                 # Eq. 7 in units of the scene radius: in world units the same capture in
                 # millimetres or kilometres would weigh flatness 1e6× differently.
