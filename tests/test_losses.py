@@ -70,22 +70,24 @@ def test_separable_ssim_matches_the_2d_window(h: int, w: int, c: int):
     torch.testing.assert_close(a.grad, b.grad, rtol=1e-9, atol=1e-14)
 
 
-def test_mask_loss_is_mean_coverage_error_and_pulls_alpha_toward_the_mask():
-    """|alpha − mask| averaged over every pixel: 0 on the mask itself (antialiased edge
-    values included); a halo outside and a hole inside each cost their area, and the
-    gradient lowers the one and raises the other, whatever colour either has."""
+def test_mask_loss_is_the_mean_coverage_beyond_the_mask():
+    """max(α − mask, 0) averaged over every pixel: 0 on the mask itself (antialiased
+    edge values included) and wherever coverage falls short of it; a halo costs its
+    area, and the gradient lowers it, whatever colour it has."""
     mask = torch.zeros(8, 8)
     mask[2:6, 2:6] = 1.0
     mask[2:6, 6] = 0.25  # an antialiased edge column
     assert float(mask_loss(mask.clone(), mask)) == 0.0
     alpha = mask.clone()
     alpha[0, :] = 0.5  # halo: 8 px at 0.5 outside
-    alpha[3, 3] = 0.0  # hole: 1 px inside
+    alpha[2:6, 6] = 0.75  # the edge column covered 0.5 beyond its coverage
+    alpha[3, 3] = 0.0  # a hole inside: not this term's business
     alpha.requires_grad_(True)
     loss = mask_loss(alpha, mask)
-    assert float(loss) == pytest.approx((8 * 0.5 + 1.0) / 64)
+    assert float(loss) == pytest.approx((8 * 0.5 + 4 * 0.5) / 64)
     loss.backward()
-    assert bool((alpha.grad[0, :] > 0).all()) and float(alpha.grad[3, 3]) < 0
+    assert bool((alpha.grad[0, :] > 0).all()) and bool((alpha.grad[2:6, 6] > 0).all())
+    assert float(alpha.grad[3, 3]) == 0.0 and float(alpha.grad[4, 4]) == 0.0
     with pytest.raises(ValueError, match="differ"):
         mask_loss(torch.zeros(8, 8), torch.zeros(4, 4))
 
