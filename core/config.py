@@ -112,7 +112,8 @@ class LossWeights(_Strict):
         2.0,
         ge=0,
         le=MAX_LOSS_WEIGHT,
-        description="weight of mean |alpha − mask| of a masked view (ablation.mask_coverage)",
+        description="weight of mean max(alpha − mask, 0) of a masked view, the coverage "
+        "beyond its mask (ablation.mask_coverage)",
     )
 
 
@@ -210,8 +211,8 @@ class Ablation(_Strict):
     mask_coverage: bool = Field(
         True,
         description="False: coverage is fitted only through the colours composited over the "
-        "background (the paper's); True: masked views also fit the rendered alpha to the "
-        "mask (loss.mask), which sees a halo or a hole whatever the colours",
+        "background (the paper's); True: masked views also pay for rendered coverage "
+        "beyond the mask (loss.mask), which sees a halo whatever the colours",
     )
 
 

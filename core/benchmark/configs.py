@@ -60,10 +60,10 @@ LABELS = {
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
     "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
-    "no_mask_loss": "w/o the mask term (coverage fitted through the colours only)",
+    "no_mask_loss": "w/o the halo term (coverage fitted through the colours only)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, same-surface depth normals, facing-only depth losses, the "
-    "mask term)",
+    "halo term)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first

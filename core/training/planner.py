@@ -200,7 +200,7 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     if scene.has_masks:
         reason = f"alpha/masks present: composite over {cfg.background}"
         if cfg.ablation.mask_coverage and cfg.loss.mask > 0:
-            reason += f"; rendered coverage fitted to them (loss.mask = {cfg.loss.mask:g})"
+            reason += f"; coverage beyond them penalised (loss.mask = {cfg.loss.mask:g})"
         bg = Decision("masked", reason, {})
     else:
         bg = Decision("unmasked", "no alpha or masks: images used as they are", {})
