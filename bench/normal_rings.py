@@ -18,16 +18,13 @@ from pathlib import Path
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from bench.edge_error import RINGS, ring_masks
 from core.evaluation.geometry import SURFACE_ALPHA
 from core.model.trained import TrainedModel
 from core.scene.formats import load_scene
 from core.scene.groundtruth import load_ground_truth
-
-
-def _unit(x: torch.Tensor) -> torch.Tensor:
-    return x / x.norm(dim=-1, keepdim=True).clamp_min(1e-12)
 
 
 @torch.no_grad()
@@ -42,10 +39,11 @@ def normal_rings(model: TrainedModel, root: Path) -> dict:
         frame = model.render(v.camera, ("depth", "normal"))
         _, valid = frame.depth()
         covered = (gt.mask & valid & (frame.gbuffer.alpha > SURFACE_ALPHA)).numpy()
-        n = _unit(frame.world_normals().double())
-        g = _unit(gt.normal_world.double())
+        n = F.normalize(frame.world_normals().double(), dim=-1)
+        g = F.normalize(gt.normal_world.double(), dim=-1)
         deg = torch.rad2deg(torch.acos((n * g).sum(-1).clamp(-1, 1))).numpy()
-        rays = _unit(v.camera.camera_rays(torch.float64) @ v.camera.R.double())  # world
+        world_rays = v.camera.camera_rays(torch.float64) @ v.camera.R.double()
+        rays = F.normalize(world_rays, dim=-1)
         bias = (((g - n) * rays).sum(-1)).numpy()  # (n − g)·(−ray)
         for k, ring in ring_masks(v.mask.double().numpy()).items():
             sel = ring & covered

@@ -356,6 +356,13 @@ class TrainConfig(_Strict):
         """A mark on the 30k schedule mapped onto this run's length."""
         return round(mark * self.iterations / REFERENCE_ITERATIONS)
 
+    @property
+    def halo_weight(self) -> float:
+        """The halo term's weight on a masked view: ``loss.mask``, or 0 where
+        ``ablation.mask_coverage`` is off (the trainer and the plan's record read this one
+        rule)."""
+        return self.loss.mask if self.ablation.mask_coverage else 0.0
+
 
 def parse_duration(value: Any) -> float:
     """Seconds from ``90``, ``"90s"``, ``"5m"``, ``"1h"`` or ``"1h30m"``; ValueError

@@ -199,8 +199,8 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     mv = decide_multi_view(cfg, with_nb, len(cams), every_view_masked, silhouette, mv_evidence)
     if scene.has_masks:
         reason = f"alpha/masks present: composite over {cfg.background}"
-        if cfg.ablation.mask_coverage and cfg.loss.mask > 0:
-            reason += f"; coverage beyond them penalised (loss.mask = {cfg.loss.mask:g})"
+        if cfg.halo_weight > 0:
+            reason += f"; coverage beyond them penalised (loss.mask = {cfg.halo_weight:g})"
         bg = Decision("masked", reason, {})
     else:
         bg = Decision("unmasked", "no alpha or masks: images used as they are", {})

@@ -426,8 +426,8 @@ class Trainer:
         with stage("rgb_loss"):
             target = view.composited(bg)
             terms: dict[str, Tensor] = {"rgb": rgb_loss(shade.final, target, cfg.loss.l1)}
-            if cfg.ablation.mask_coverage and cfg.loss.mask > 0 and view.mask is not None:
-                terms["mask"] = cfg.loss.mask * mask_loss(gb.alpha, view.mask)
+            if cfg.halo_weight > 0 and view.mask is not None:
+                terms["mask"] = cfg.halo_weight * mask_loss(gb.alpha, view.mask)
             if phase.scale_loss and cfg.loss.scale > 0:
                 # Eq. 7 in units of the scene radius: in world units the same capture in
                 # millimetres or kilometres would weigh flatness 1e6× differently.
