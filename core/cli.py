@@ -366,6 +366,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
             trunc=args.trunc,
             resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
             carve=not args.no_carve,
+            hull=not args.no_hull,
             keep_fraction=args.keep_fraction,
             color=args.color,
             simplify=args.simplify,
@@ -501,6 +502,11 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="the run's scene folder (default: from scene.json)")
     _add_mesh_args(p)
     p.add_argument("--no-carve", action="store_true", help="do not carve empty pixels")
+    p.add_argument(
+        "--no-hull",
+        action="store_true",
+        help="do not bound the distance field by the masks' hull (masked views only)",
+    )
     p.add_argument(
         "--keep-fraction",
         type=float,

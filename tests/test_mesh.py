@@ -8,6 +8,7 @@ import torch
 
 from core.meshing.mesh import export_mesh
 from core.meshing.tsdf import (
+    HULL_MARGIN_PX,
     DepthFrame,
     extract_mesh,
     fuse_depth_frames,
@@ -267,3 +268,82 @@ def test_depth_between_pixel_centres_is_bilinear_on_a_surface_and_nearest_at_an_
     torch.testing.assert_close(got[at_edge], step.reshape(-1)[nearest][at_edge])
     inside = (want + (u >= 3).float())[~at_edge]
     torch.testing.assert_close(got[~at_edge], inside, atol=1e-6, rtol=0)
+
+
+def test_mask_hull_distance_and_the_bound_it_gives() -> None:
+    """Distances are Euclidean to the nearest pixel a mask may hold; the bound is zero
+    within half a pixel's diagonal of it, (d − margin)·z/(f·trunc) beyond, at most 1."""
+    from core.meshing.tsdf import hull_bound, mask_hull_distance
+
+    empty = torch.ones(5, 7, dtype=torch.bool)
+    empty[2, 3] = False
+    d = mask_hull_distance(empty)
+    assert d[2, 3] == 0 and d[2, 5] == 2 and d[0, 1] == pytest.approx(8**0.5)
+    assert torch.equal(mask_hull_distance(torch.ones(3, 3, dtype=torch.bool)), torch.zeros(3, 3))
+    z = torch.tensor([2.0, 2.0, 2.0, 2.0])
+    dist = torch.tensor([0.0, HULL_MARGIN_PX, HULL_MARGIN_PX + 1.0, 100.0])
+    b = hull_bound(dist, z, focal=10.0, trunc=0.5)
+    torch.testing.assert_close(b, torch.tensor([0.0, 0.0, 2.0 / (10.0 * 0.5), 1.0]))
+
+
+def _ray_miss_distance(cam, points: torch.Tensor) -> torch.Tensor:
+    """How far the ray from ``cam`` through each point passes from the origin."""
+    o = cam.center.to(torch.float64)
+    ray = torch.nn.functional.normalize(points.to(torch.float64) - o, dim=-1)
+    return torch.linalg.cross(ray, -o[None].expand_as(ray), dim=-1).norm(dim=-1)
+
+
+def _sphere_frames_with_mask(mask_radius: float, small_views: set[int]) -> list[DepthFrame]:
+    """The r = 0.6 sphere's exact depths from 12 views, masked as model_depth_frame does:
+    views in ``small_views`` with the mask of a sphere of ``mask_radius`` (what they see
+    through), the rest with the sphere's own."""
+    from core.meshing.tsdf import mask_hull_distance
+
+    frames = []
+    for i, cam in enumerate(fibonacci_cameras(12, distance=3.0, size=SIZE)):
+        r = render_synthetic_view(cam, shape="sphere", kind="diffuse", samples=2)
+        empty = r.alpha < 0.05
+        if i in small_views:
+            uv = cam.pixel_centers(torch.float64).reshape(-1, 2)
+            far = cam.backproject(uv, torch.ones(uv.shape[0], dtype=torch.float64))
+            empty = (_ray_miss_distance(cam, far) > mask_radius).reshape(SIZE, SIZE)
+        valid = (r.depth > 0) & (r.alpha > 0.5) & ~empty
+        frames.append(DepthFrame(cam, r.depth, valid, empty, None, None, mask_hull_distance(empty)))
+    return frames
+
+
+def test_the_masks_hull_bounds_a_surface_the_depths_put_outside_it() -> None:
+    """Ten views' depths put the surface at r = 0.6; two views' masks allow only r = 0.55
+    (a membrane across a hole that only those views see through, a slab thicker than a
+    thin part): carving is outvoted and leaves surface outside those masks, the hull
+    distance keeps every vertex within them (to a voxel and the margin)."""
+    small = {0, 6}
+    frames = _sphere_frames_with_mask(0.55, small)
+    cams = [f.camera for f in frames]
+    excess = {}
+    for hull in (False, True):
+        vol, params = fuse_depth_frames(
+            frames, center=torch.zeros(3), radius=2.0, resolution=40, hull=hull
+        )
+        v = torch.as_tensor(extract_mesh(vol).vertices)
+        excess[hull] = max(float((_ray_miss_distance(cams[i], v) - 0.55).max()) for i in small)
+    footprint = 3.0 / cams[0].intrinsics.fx  # the margin at the sphere's depth, about
+    assert excess[False] > 0.03, excess
+    assert excess[True] < params.voxel + HULL_MARGIN_PX * footprint, excess
+
+
+def test_a_true_mask_leaves_the_surface_where_the_depths_put_it() -> None:
+    """With masks of the sphere itself the hull bounds nothing the depths did not already
+    say: the mesh is as close to the sphere as the one without it."""
+    frames = _sphere_frames_with_mask(0.6, set())
+    radius = {}
+    for hull in (False, True):
+        vol, _ = fuse_depth_frames(
+            frames, center=torch.zeros(3), radius=2.0, resolution=40, hull=hull
+        )
+        radius[hull] = np.linalg.norm(extract_mesh(vol).vertices, axis=1)
+    err = {h: np.abs(r - SPHERE_RADIUS) for h, r in radius.items()}
+    # beside the rim a voxel's bound may exceed its projective distance (which only
+    # underestimates there), moving a crossing by a fraction of a voxel, never out
+    assert abs(err[True].mean() - err[False].mean()) < 1e-3, (err[True].mean(), err[False].mean())
+    assert err[True].max() <= err[False].max() + 1e-3

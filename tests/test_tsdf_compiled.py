@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from core.meshing.tsdf import DepthFrame, TSDFVolume, extract_mesh, fuse_depth_frames
+from core.meshing.tsdf import (
+    DepthFrame,
+    TSDFVolume,
+    extract_mesh,
+    fuse_depth_frames,
+    mask_hull_distance,
+)
 from core.scene.synthetic import fibonacci_cameras, render_synthetic_view
 
 SIZE = 32
@@ -15,7 +21,8 @@ SIZE = 32
 @pytest.fixture(scope="module")
 def frames() -> list[DepthFrame]:
     """The sphere from 10 views with everything a frame can carry: carving, colours,
-    per-pixel weights, depth noise, and a step in the depth (nearest-pixel fallback)."""
+    per-pixel weights, mask-hull distances, depth noise, and a step in the depth
+    (nearest-pixel fallback)."""
     g = torch.Generator().manual_seed(0)
     out = []
     for i, cam in enumerate(fibonacci_cameras(10, distance=3.0, size=SIZE)):
@@ -26,7 +33,10 @@ def frames() -> list[DepthFrame]:
             depth[10:16, 10:16] -= 0.2
         weight = torch.rand(r.depth.shape, generator=g).clamp_min(0.05)
         carve = r.alpha < 0.05
-        out.append(DepthFrame(cam, depth, valid, carve if i % 2 else None, r.rgb, weight))
+        # a mask a little smaller than the sphere (as a mask the model's surface exceeds):
+        # its hull distances raise the band's voxels near the rim
+        hull = mask_hull_distance(r.alpha < 0.6) if i % 4 == 1 else None
+        out.append(DepthFrame(cam, depth, valid, carve if i % 2 else None, r.rgb, weight, hull))
     return out
 
 
@@ -41,7 +51,8 @@ def _fuse(frames: list[DepthFrame], compiled: bool) -> TSDFVolume:
 def test_compiled_integration_matches_the_torch_reference(frames) -> None:
     ref, fast = _fuse(frames, False), _fuse(frames, True)
     assert int((ref.weight > 0).sum()) > 1000  # the band was observed
-    for name in ("tsdf", "weight", "color", "color_weight"):
+    assert int((ref.hull > 0).sum()) > 100  # the hull bounded some voxels
+    for name in ("tsdf", "weight", "color", "color_weight", "hull"):
         a, b = getattr(ref, name), getattr(fast, name)
         # float32 both ways; a voxel whose projection falls within rounding of a pixel
         # border may read the neighbouring pixel, so allow a few such voxels

@@ -38,6 +38,7 @@ from core.meshing.tsdf import (
     extract_mesh,
     fuse_frames,
     keep_largest_components,
+    mask_hull_distance,
     observation_weight,
 )
 from core.model.trained import TrainedModel
@@ -64,12 +65,14 @@ def model_depth_frame(
     color: str | None = "base",
     scale: float = 1.0,
     weighted: bool = True,
+    hull: bool = True,
 ) -> DepthFrame:
     """The depth the model uses and, unless ``color`` is None, the surface colour of one
     view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs, with
     each pixel's fusion weight (incidence of the rendered normal, occlusion edges)
     unless ``weighted`` is False (a frame read only for its points: bounds, the narrow
-    band, the run record's surface probe; ~50 ms a frame at 800² saved)."""
+    band, the run record's surface probe; ~50 ms a frame at 800² saved), and with
+    ``hull`` its mask's hull distances (tsdf.mask_hull_distance) when it has a mask."""
     camera = view.camera if scale == 1.0 else view.camera.scaled(scale)
     channels = {"base": ("base", "depth"), "radiance": ("final", "depth"), None: ("depth",)}
     if color not in channels:
@@ -85,8 +88,10 @@ def model_depth_frame(
             mask = F.interpolate(mask[None, None], size=tuple(alpha.shape), mode="area")[0, 0]
         valid = valid & (mask > MASK_OBJECT)
         empty = mask < MASK_EMPTY
+        hull_dist = mask_hull_distance(empty) if hull else None
     else:
         empty = alpha < EMPTY_ALPHA
+        hull_dist = None
     rgb = None
     a = alpha.clamp_min(1e-6)[..., None]
     if color == "base":  # G-buffer base colour is premultiplied by coverage
@@ -98,7 +103,7 @@ def model_depth_frame(
     if weighted:
         weight = observation_weight(depth.detach(), valid, frame.gbuffer.normal.detach(), camera)
     color_out = None if rgb is None else rgb.detach()
-    return DepthFrame(camera, depth.detach(), valid, empty, color_out, weight)
+    return DepthFrame(camera, depth.detach(), valid, empty, color_out, weight, hull_dist)
 
 
 def export_mesh(mesh: trimesh.Trimesh, out_dir: str | Path, stem: str = "mesh") -> list[Path]:
@@ -153,6 +158,7 @@ def mesh_model(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
+    hull: bool = True,
     keep_fraction: float = 0.1,
     color: str = "base",
     simplify: int | None = None,
@@ -190,17 +196,20 @@ def mesh_model(
     t0 = time.perf_counter()
     vol, params = fuse_frames(
         len(views),
-        lambda i: model_depth_frame(model, views[i], color=color),
+        lambda i: model_depth_frame(model, views[i], color=color, hull=hull),
         bounds_frame_at=lambda i: model_depth_frame(
-            model, views[i], color=None, scale=bounds_scale, weighted=False
+            model, views[i], color=None, scale=bounds_scale, weighted=False, hull=False
         ),
-        band_frame_at=lambda i: model_depth_frame(model, views[i], color=None, weighted=False),
+        band_frame_at=lambda i: model_depth_frame(
+            model, views[i], color=None, weighted=False, hull=False
+        ),
         center=model.center,
         radius=float(model.radius),
         voxel=voxel,
         trunc=trunc,
         resolution=resolution,
         carve=carve,
+        hull=hull,
         device=model.device,
         progress=report,
         max_resolution=max_resolution,

@@ -16,6 +16,12 @@ into a truncated signed distance field, and take its zero level set.
   pixels the view knows to be empty (outside its mask, or with no rendered
   coverage when there is no mask) *carve*: the voxels they see get "empty", which
   removes floaters outside the object's silhouettes.
+- **The masks' hull bounds the distance** (``hull_dist``): a voxel whose projection lies
+  d pixels from anything a view's mask may hold is at least about d·z/f from the object,
+  whatever the other views' depths say, so its value is raised to that bound. Carving
+  alone is one vote among many: a membrane the model spans across a through hole, or a
+  slab thicker than a thin part, is seen as surface by every view that does not look
+  through it, and outvotes the few that do (rocker_gold_256's bore; docs/benchmarks.md).
 - **Bounds** tighten the scene's sphere (which loaders derive conservatively from the
   cameras) to robust percentiles of the back-projected surface pixels; voxel size
   and truncation default to 2·radius/256 and 4 voxels of the tightened box.
@@ -57,6 +63,10 @@ SURFACE_ALPHA = 0.5
 EMPTY_ALPHA = 0.05
 # A view's mask value below which its pixel is background (carved), above which object.
 MASK_EMPTY, MASK_OBJECT = 0.05, 0.5
+# A voxel's projection this many pixels from the nearest pixel a mask may hold can still
+# touch the object: that pixel's far corner (half its diagonal), so a correct mask never
+# lifts a voxel of the object.
+HULL_MARGIN_PX = math.sqrt(0.5)
 # Fusion weights: a surface seen edge-on (> 87 degrees), or a pixel on an occlusion edge,
 # still counts this much; a pixel whose 3×3 neighbourhood spans a depth jump above
 # EDGE_JUMP_PX pixel footprints (depth / focal length) lies on such an edge.
@@ -74,7 +84,9 @@ class DepthFrame:
     or None (all 1): how much each surface observation counts, e.g. the cosine between
     the ray and the surface normal (:func:`incidence_weight`), since a depth seen at a
     grazing angle is off by far more along the ray than one seen head-on. Carving
-    (``empty``) always counts 1.
+    (``empty``) always counts 1. ``hull_dist`` (H, W) or None: each pixel's distance in
+    pixels to the nearest pixel the view's *mask* does not call empty
+    (:func:`mask_hull_distance`); only a mask gives one, never the model's own coverage.
     """
 
     camera: Camera
@@ -83,6 +95,44 @@ class DepthFrame:
     empty: Tensor | None = None
     color: Tensor | None = None
     weight: Tensor | None = None
+    hull_dist: Tensor | None = None
+
+
+def mask_hull_distance(empty: Tensor) -> Tensor:
+    """(H, W) float32: distance in pixels from each pixel's centre to the nearest pixel
+    centre that is not ``empty`` (0 on those; every pixel's distance is 0 when none is:
+    a mask with no object bounds nothing)."""
+    from scipy.ndimage import distance_transform_edt
+
+    e = empty.detach().cpu().numpy().astype(bool)
+    if e.all():
+        return torch.zeros(e.shape, dtype=torch.float32, device=empty.device)
+    d = distance_transform_edt(e).astype(np.float32)
+    return torch.from_numpy(d).to(empty.device)
+
+
+def bilinear_at(values: Tensor, u: Tensor, v: Tensor, W: int, H: int) -> Tensor:
+    """A flat (H·W,) map read at continuous pixel positions (u, v) (pixel i spans
+    [i, i + 1)), bilinear between pixel centres, clamped at the border."""
+    if W < 2 or H < 2:
+        i = u.floor().clamp(0, W - 1)
+        j = v.floor().clamp(0, H - 1)
+        return values[(j * W + i).long()]
+    uc, vc = u - 0.5, v - 0.5
+    i0 = torch.floor(uc).clamp(0, W - 2)
+    j0 = torch.floor(vc).clamp(0, H - 2)
+    fu, fv = (uc - i0).clamp(0, 1), (vc - j0).clamp(0, 1)
+    b = (j0 * W + i0).long()
+    top = values[b] * (1 - fu) + values[b + 1] * fu
+    bottom = values[b + W] * (1 - fu) + values[b + W + 1] * fu
+    return top * (1 - fv) + bottom * fv
+
+
+def hull_bound(dist_px: Tensor, z: Tensor, focal: float, trunc: float) -> Tensor:
+    """Lower bound on a voxel's TSDF value (distance / ``trunc``, at most 1) from its
+    projection's distance ``dist_px`` to a mask's object pixels at depth ``z``: a
+    point off the voxel's ray by that angle is at least z·tan of it away."""
+    return ((dist_px - HULL_MARGIN_PX).clamp_min(0) * z / (float(focal) * trunc)).clamp(max=1.0)
 
 
 def incidence_weight(normal: Tensor, rays: Tensor) -> Tensor:
@@ -194,6 +244,7 @@ class FusionParams:
     band_voxels: int = 0
     frames: int = 0
     carve: bool = True
+    hull: bool = True
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -335,6 +386,8 @@ class TSDFVolume:
         self.weight = torch.zeros(m, device=self.device)
         self.color = torch.zeros(m, 3, device=self.device)
         self.color_weight = torch.zeros(m, device=self.device)
+        # the masks' lower bound on each voxel's value (0: none), applied by dense()
+        self.hull = torch.zeros(m, device=self.device)
 
     @torch.no_grad()
     def integrate(
@@ -342,10 +395,13 @@ class TSDFVolume:
         frame: DepthFrame,
         *,
         carve: bool = True,
+        hull: bool = True,
         chunk: int = 1 << 22,
         compiled: bool | None = None,
     ) -> None:
-        """Fuse one view (depth between pixel centres, projective distance along z).
+        """Fuse one view (depth between pixel centres, projective distance along z);
+        with ``hull``, also raise each voxel's lower bound from the view's
+        ``hull_dist`` (when it has one).
 
         Only the voxels the view updates are touched (index ops), so a view costs
         one projection of the band plus work proportional to what it sees.
@@ -365,6 +421,9 @@ class TSDFVolume:
         color = None
         if frame.color is not None:
             color = frame.color.to(self.device, torch.float32).reshape(-1, 3)
+        hull_dist = None
+        if hull and frame.hull_dist is not None:
+            hull_dist = frame.hull_dist.to(self.device, torch.float32).reshape(-1)
         # P = K [R | t]: (u·z, v·z, z) = P (x, 1)
         P = cam.K(torch.float64) @ torch.cat([cam.R, cam.t[:, None]], 1)
         P = P.to(self.device, torch.float32)
@@ -378,9 +437,9 @@ class TSDFVolume:
 
             integrate_compiled(
                 self.points.numpy(), P.numpy(), arr(depth), arr(valid), arr(empty),
-                arr(view_w), arr(color), W, H, cam.intrinsics.fx, EDGE_JUMP_PX, self.trunc,
-                self.tsdf.numpy(), self.weight.numpy(), self.color.numpy(),
-                self.color_weight.numpy(),
+                arr(view_w), arr(color), arr(hull_dist), W, H, cam.intrinsics.fx, EDGE_JUMP_PX,
+                HULL_MARGIN_PX, self.trunc, self.tsdf.numpy(), self.weight.numpy(),
+                self.color.numpy(), self.color_weight.numpy(), self.hull.numpy(),
             )  # fmt: skip
             return
         for s in range(0, self.points.shape[0], chunk):
@@ -393,6 +452,11 @@ class TSDFVolume:
             sel = inimg.nonzero()[:, 0]
             pix = (v[sel] * W + u[sel]).long()
             u_sel, v_sel = uvz[sel, 0] / zs[sel], uvz[sel, 1] / zs[sel]
+            if hull_dist is not None:
+                at = bilinear_at(hull_dist, u_sel, v_sel, W, H)
+                bound = hull_bound(at, z[sel], cam.intrinsics.fx, self.trunc)
+                hidx = sel + s
+                self.hull[hidx] = torch.maximum(self.hull[hidx], bound)
             d_at = interpolated_depth(depth, valid, pix, u_sel, v_sel, W, H, cam.intrinsics.fx)
             sdf = d_at - z[sel]
             upd = valid[pix] & (sdf > -self.trunc)
@@ -421,13 +485,17 @@ class TSDFVolume:
                 self.color_weight[cidx] = cw + 1.0
 
     def dense(self) -> tuple[np.ndarray, np.ndarray]:
-        """Dense TSDF (unobserved = +1) and observed mask, as numpy grids."""
+        """Dense TSDF (unobserved = +1) and observed mask, as numpy grids; each observed
+        voxel's value at least its hull bound."""
         n = self.grid.count
         vol = torch.ones(n)
         obs = torch.zeros(n, dtype=torch.bool)
         seen = self.weight.cpu() > 0
         idx = self.index.cpu()
-        vol[idx[seen]] = self.tsdf.cpu()[seen]
+        hull = self.hull.cpu()  # 0: no bound (the voxel may lie on or in the object)
+        vol[idx[seen]] = torch.where(
+            hull > 0, torch.maximum(self.tsdf.cpu(), hull), self.tsdf.cpu()
+        )[seen]
         obs[idx[seen]] = True
         return vol.reshape(self.grid.shape).numpy(), obs.reshape(self.grid.shape).numpy()
 
@@ -483,6 +551,7 @@ def fuse_frames(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
+    hull: bool = True,
     device: torch.device | str = "cpu",
     progress: ProgressFn | None = None,
     max_resolution: int | None = None,
@@ -525,7 +594,7 @@ def fuse_frames(
     band = narrow_band(band_frames(), grid, trunc)
     vol = TSDFVolume(grid, trunc, band, device=device)
     for i in range(n_frames):
-        vol.integrate(frame_at(i), carve=carve)
+        vol.integrate(frame_at(i), carve=carve, hull=hull)
         report("integrate", i + 1, n_frames)
     params = FusionParams(
         lo=[float(x) for x in lo],
@@ -536,6 +605,7 @@ def fuse_frames(
         band_voxels=int(band.numel()),
         frames=n_frames,
         carve=carve,
+        hull=hull,
     )
     return vol, params
 
@@ -549,12 +619,13 @@ def fuse_depth_frames(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
+    hull: bool = True,
     device: torch.device | str = "cpu",
 ) -> tuple[TSDFVolume, FusionParams]:
     """Fuse depth frames already in memory (see :func:`fuse_frames`)."""
     return fuse_frames(
         len(frames), frames.__getitem__, center=center, radius=radius, voxel=voxel,
-        trunc=trunc, resolution=resolution, carve=carve, device=device,
+        trunc=trunc, resolution=resolution, carve=carve, hull=hull, device=device,
     )  # fmt: skip
 
 

@@ -26,12 +26,20 @@ _F0, _F1, _HALF = np.float32(0.0), np.float32(1.0), np.float32(0.5)
 _TINY = np.float32(1e-6)
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _raise_hull(hull, m, dist_px, margin, scale):  # pragma: no cover - numba
+    """tsdf.hull_bound: hull[m] = max(hull[m], min((dist_px − margin)⁺ · scale, 1))."""
+    bound = min(max(dist_px - margin, _F0) * scale, _F1)
+    if bound > hull[m]:
+        hull[m] = bound
+
+
 @njit(nogil=True, cache=True)
 def _integrate_range(  # pragma: no cover - numba
-    lo, hi, points, P, depth, valid, empty, view_w, color, flags, W, H, jump, trunc,
-    tsdf, weight, col, col_w,
+    lo, hi, points, P, depth, valid, empty, view_w, color, hull_dist, flags, W, H, jump,
+    margin, hull_scale, trunc, tsdf, weight, col, col_w, hull,
 ):  # fmt: skip
-    has_empty, has_w, has_color = flags[0], flags[1], flags[2]
+    has_empty, has_w, has_color, has_hull = flags[0], flags[1], flags[2], flags[3]
     for m in range(lo, hi):
         x, y, z = points[m, 0], points[m, 1], points[m, 2]
         uz = x * P[0, 0] + y * P[0, 1] + z * P[0, 2] + P[0, 3]
@@ -45,13 +53,17 @@ def _integrate_range(  # pragma: no cover - numba
             continue
         pix = int(v) * W + int(u)
         d = depth[pix]
-        if W >= 2 and H >= 2:  # interpolated_depth
+        if W >= 2 and H >= 2:  # interpolated_depth (and bilinear_at for the hull)
             uc, vc = uf - _HALF, vf - _HALF
             i0 = min(max(math.floor(uc), 0), W - 2)
             j0 = min(max(math.floor(vc), 0), H - 2)
             fu = min(max(uc - np.float32(i0), _F0), _F1)
             fv = min(max(vc - np.float32(j0), _F0), _F1)
             b = int(j0) * W + int(i0)
+            if has_hull:
+                top = hull_dist[b] * (_F1 - fu) + hull_dist[b + 1] * fu
+                bottom = hull_dist[b + W] * (_F1 - fu) + hull_dist[b + W + 1] * fu
+                _raise_hull(hull, m, top * (_F1 - fv) + bottom * fv, margin, zz * hull_scale)
             d0, d1, d2, d3 = depth[b], depth[b + 1], depth[b + W], depth[b + W + 1]
             hi_d = max(max(d0, d1), max(d2, d3))
             lo_d = min(min(d0, d1), min(d2, d3))
@@ -60,6 +72,8 @@ def _integrate_range(  # pragma: no cover - numba
                 top = d0 * (_F1 - fu) + d1 * fu
                 bottom = d2 * (_F1 - fu) + d3 * fu
                 d = top * (_F1 - fv) + bottom * fv
+        elif has_hull:
+            _raise_hull(hull, m, hull_dist[pix], margin, zz * hull_scale)
         sdf = d - zz
         upd = valid[pix] and sdf > -trunc
         obs = min(sdf / trunc, _F1)
@@ -87,30 +101,39 @@ def integrate_compiled(
     empty: np.ndarray | None,
     view_w: np.ndarray | None,
     color: np.ndarray | None,
+    hull_dist: np.ndarray | None,
     W: int,
     H: int,
     focal: float,
     jump_px: float,
+    margin_px: float,
     trunc: float,
     tsdf: np.ndarray,
     weight: np.ndarray,
     col: np.ndarray,
     col_w: np.ndarray,
+    hull: np.ndarray,
 ) -> None:
-    """Update ``tsdf``, ``weight``, ``col``, ``col_w`` (the band's, float32) in place
-    with one view: ``points`` (M, 3) voxel centres, ``P`` (3, 4) = K [R | t], flat
-    (H·W,) ``depth``/``valid`` and the optional carving mask, pixel weights and
-    colours (H·W, 3). ``jump_px``: the corners' depth spread, in footprints, above
-    which the nearest pixel's depth is used instead of the bilinear one."""
+    """Update ``tsdf``, ``weight``, ``col``, ``col_w`` and the lower bounds ``hull``
+    (the band's, float32) in place with one view: ``points`` (M, 3) voxel centres,
+    ``P`` (3, 4) = K [R | t], flat (H·W,) ``depth``/``valid`` and the optional carving
+    mask, pixel weights, colours (H·W, 3) and mask-hull distances. ``jump_px``: the
+    corners' depth spread, in footprints, above which the nearest pixel's depth is
+    used instead of the bilinear one; ``margin_px``: tsdf.HULL_MARGIN_PX."""
     f32 = np.float32
     none_b, none_f = np.zeros(1, np.bool_), np.zeros(1, f32)
-    flags = np.array([empty is not None, view_w is not None, color is not None], np.bool_)
+    flags = np.array(
+        [empty is not None, view_w is not None, color is not None, hull_dist is not None],
+        np.bool_,
+    )
     args = (
         points, P.astype(f32), depth, valid,
         none_b if empty is None else empty,
         none_f if view_w is None else view_w,
         np.zeros((1, 3), f32) if color is None else color,
-        flags, int(W), int(H), f32(f32(jump_px) / f32(focal)), f32(trunc),
-        tsdf, weight, col, col_w,
+        none_f if hull_dist is None else hull_dist,
+        flags, int(W), int(H), f32(f32(jump_px) / f32(focal)), f32(margin_px),
+        f32(f32(1.0) / (f32(focal) * f32(trunc))), f32(trunc),
+        tsdf, weight, col, col_w, hull,
     )  # fmt: skip
     run_ranges(_integrate_range, points.shape[0], args)
