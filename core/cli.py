@@ -366,7 +366,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
             trunc=args.trunc,
             resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
             carve=not args.no_carve,
-            hull=not args.no_hull,
+            hull=args.hull,
             keep_fraction=args.keep_fraction,
             color=args.color,
             simplify=args.simplify,
@@ -503,9 +503,10 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     _add_mesh_args(p)
     p.add_argument("--no-carve", action="store_true", help="do not carve empty pixels")
     p.add_argument(
-        "--no-hull",
+        "--hull",
         action="store_true",
-        help="do not bound the distance field by the masks' hull (masked views only)",
+        help="bound the distance field by the masks' hull (masked views; exact masks only: "
+        "docs/benchmarks.md)",
     )
     p.add_argument(
         "--keep-fraction",

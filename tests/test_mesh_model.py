@@ -142,17 +142,19 @@ def test_cancel_and_bad_input_leave_nothing(run, tmp_path: Path) -> None:  # typ
 
 
 def test_masked_views_carry_their_hull_distances(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    """A view with a mask hands fusion its hull distances (0 on the object, growing
-    outside), none when asked not to; mesh.json records whether the hull bounded the
+    """Asked to, a view with a mask hands fusion its hull distances (0 on the object,
+    growing outside); by default none; mesh.json records whether the hull bounded the
     field."""
     model, scene = run
     view = scene.train[0]
     assert view.mask is not None
-    f = model_depth_frame(model, view, color=None)
+    f = model_depth_frame(model, view, color=None, hull=True)
     assert f.hull_dist is not None and f.hull_dist.shape == f.depth.shape
     inside = view.mask.to(torch.float32) > 0.5
     assert float(f.hull_dist[inside].abs().max()) == 0.0
     assert float(f.hull_dist[f.empty].min()) >= 1.0 and float(f.hull_dist.max()) > 3.0
-    assert model_depth_frame(model, view, color=None, hull=False).hull_dist is None
-    _, info = mesh_model(model, scene.train, tmp_path, resolution=32, hull=False, preview=False)
+    assert model_depth_frame(model, view, color=None).hull_dist is None  # off by default
+    _, info = mesh_model(model, scene.train, tmp_path, resolution=32, preview=False)
     assert info["fusion"]["hull"] is False
+    _, info = mesh_model(model, scene.train, tmp_path, resolution=32, hull=True, preview=False)
+    assert info["fusion"]["hull"] is True

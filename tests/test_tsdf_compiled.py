@@ -44,7 +44,7 @@ def _fuse(frames: list[DepthFrame], compiled: bool) -> TSDFVolume:
     ref, _ = fuse_depth_frames(frames, resolution=48)  # its grid, band and truncation
     vol = TSDFVolume(ref.grid, ref.trunc, ref.index)
     for f in frames:
-        vol.integrate(f, compiled=compiled)
+        vol.integrate(f, compiled=compiled, hull=True)
     return vol
 
 

@@ -65,7 +65,7 @@ def model_depth_frame(
     color: str | None = "base",
     scale: float = 1.0,
     weighted: bool = True,
-    hull: bool = True,
+    hull: bool = False,
 ) -> DepthFrame:
     """The depth the model uses and, unless ``color`` is None, the surface colour of one
     view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs, with
@@ -158,7 +158,7 @@ def mesh_model(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
-    hull: bool = True,
+    hull: bool = False,
     keep_fraction: float = 0.1,
     color: str = "base",
     simplify: int | None = None,

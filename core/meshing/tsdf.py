@@ -22,6 +22,10 @@ into a truncated signed distance field, and take its zero level set.
   alone is one vote among many: a membrane the model spans across a through hole, or a
   slab thicker than a thin part, is seen as surface by every view that does not look
   through it, and outvotes the few that do (rocker_gold_256's bore; docs/benchmarks.md).
+  Opt-in (``hull=True``, ``glint mesh --hull``): the hull is the intersection of every
+  view's mask, so masks that disagree by more than half a pixel (a real capture's) cut
+  the object, and where the model's surface lies more than a truncation outside the
+  masks the bound removes it with nothing behind it to close the hole.
 - **Bounds** tighten the scene's sphere (which loaders derive conservatively from the
   cameras) to robust percentiles of the back-projected surface pixels; voxel size
   and truncation default to 2·radius/256 and 4 voxels of the tightened box.
@@ -244,7 +248,7 @@ class FusionParams:
     band_voxels: int = 0
     frames: int = 0
     carve: bool = True
-    hull: bool = True
+    hull: bool = False
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -395,7 +399,7 @@ class TSDFVolume:
         frame: DepthFrame,
         *,
         carve: bool = True,
-        hull: bool = True,
+        hull: bool = False,
         chunk: int = 1 << 22,
         compiled: bool | None = None,
     ) -> None:
@@ -551,7 +555,7 @@ def fuse_frames(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
-    hull: bool = True,
+    hull: bool = False,
     device: torch.device | str = "cpu",
     progress: ProgressFn | None = None,
     max_resolution: int | None = None,
@@ -619,7 +623,7 @@ def fuse_depth_frames(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
-    hull: bool = True,
+    hull: bool = False,
     device: torch.device | str = "cpu",
 ) -> tuple[TSDFVolume, FusionParams]:
     """Fuse depth frames already in memory (see :func:`fuse_frames`)."""
