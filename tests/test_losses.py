@@ -84,7 +84,7 @@ def test_mask_loss_is_the_mean_coverage_beyond_the_mask():
     alpha[3, 3] = 0.0  # a hole inside: not this term's business
     alpha.requires_grad_(True)
     loss = mask_loss(alpha, mask)
-    assert float(loss) == pytest.approx((8 * 0.5 + 4 * 0.5) / 64)
+    assert loss.item() == pytest.approx((8 * 0.5 + 4 * 0.5) / 64)
     loss.backward()
     assert bool((alpha.grad[0, :] > 0).all()) and bool((alpha.grad[2:6, 6] > 0).all())
     assert float(alpha.grad[3, 3]) == 0.0 and float(alpha.grad[4, 4]) == 0.0
