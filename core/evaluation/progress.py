@@ -222,7 +222,7 @@ def surface_points(
     scale = float(min(PROBE_MAX_SCALE, max(1.0, math.sqrt(per_view / max(mean_covered, 1.0)))))
     chunks = []
     for v in views:
-        frame = model_depth_frame(model, v, color=None, scale=scale, weighted=False, hull=False)
+        frame = model_depth_frame(model, v, color=None, scale=scale, weighted=False)
         p = frame_points(frame).cpu().numpy()
         if len(p) > per_view:
             p = p[rng.choice(len(p), per_view, replace=False)]

@@ -198,11 +198,9 @@ def mesh_model(
         len(views),
         lambda i: model_depth_frame(model, views[i], color=color, hull=hull),
         bounds_frame_at=lambda i: model_depth_frame(
-            model, views[i], color=None, scale=bounds_scale, weighted=False, hull=False
+            model, views[i], color=None, scale=bounds_scale, weighted=False
         ),
-        band_frame_at=lambda i: model_depth_frame(
-            model, views[i], color=None, weighted=False, hull=False
-        ),
+        band_frame_at=lambda i: model_depth_frame(model, views[i], color=None, weighted=False),
         center=model.center,
         radius=float(model.radius),
         voxel=voxel,

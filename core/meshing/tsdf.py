@@ -115,6 +115,21 @@ def mask_hull_distance(empty: Tensor) -> Tensor:
     return torch.from_numpy(d).to(empty.device)
 
 
+def _bilinear_cell(u: Tensor, v: Tensor, W: int, H: int) -> tuple[Tensor, Tensor, Tensor]:
+    """For continuous pixel positions (u, v) (pixel i spans [i, i + 1)), W, H ≥ 2: the
+    flat index of the top-left of the four pixel centres around each, and the
+    fractions (fu, fv) toward the right and lower ones, clamped at the border."""
+    uc, vc = u - 0.5, v - 0.5
+    i0 = torch.floor(uc).clamp(0, W - 2)
+    j0 = torch.floor(vc).clamp(0, H - 2)
+    return (j0 * W + i0).long(), (uc - i0).clamp(0, 1), (vc - j0).clamp(0, 1)
+
+
+def _blend(d00: Tensor, d01: Tensor, d10: Tensor, d11: Tensor, fu: Tensor, fv: Tensor) -> Tensor:
+    """Bilinear blend of the four corner values (top-left, top-right, bottom-left, …)."""
+    return (d00 * (1 - fu) + d01 * fu) * (1 - fv) + (d10 * (1 - fu) + d11 * fu) * fv
+
+
 def bilinear_at(values: Tensor, u: Tensor, v: Tensor, W: int, H: int) -> Tensor:
     """A flat (H·W,) map read at continuous pixel positions (u, v) (pixel i spans
     [i, i + 1)), bilinear between pixel centres, clamped at the border."""
@@ -122,14 +137,8 @@ def bilinear_at(values: Tensor, u: Tensor, v: Tensor, W: int, H: int) -> Tensor:
         i = u.floor().clamp(0, W - 1)
         j = v.floor().clamp(0, H - 1)
         return values[(j * W + i).long()]
-    uc, vc = u - 0.5, v - 0.5
-    i0 = torch.floor(uc).clamp(0, W - 2)
-    j0 = torch.floor(vc).clamp(0, H - 2)
-    fu, fv = (uc - i0).clamp(0, 1), (vc - j0).clamp(0, 1)
-    b = (j0 * W + i0).long()
-    top = values[b] * (1 - fu) + values[b + 1] * fu
-    bottom = values[b + W] * (1 - fu) + values[b + W + 1] * fu
-    return top * (1 - fv) + bottom * fv
+    b, fu, fv = _bilinear_cell(u, v, W, H)
+    return _blend(values[b], values[b + 1], values[b + W], values[b + W + 1], fu, fv)
 
 
 def hull_bound(dist_px: Tensor, z: Tensor, focal: float, trunc: float) -> Tensor:
@@ -192,18 +201,12 @@ def interpolated_depth(
     d_near = depth[nearest]
     if W < 2 or H < 2:
         return d_near
-    uc, vc = u - 0.5, v - 0.5
-    i0 = torch.floor(uc).clamp(0, W - 2)
-    j0 = torch.floor(vc).clamp(0, H - 2)
-    fu, fv = (uc - i0).clamp(0, 1), (vc - j0).clamp(0, 1)
-    base = (j0 * W + i0).long()
+    base, fu, fv = _bilinear_cell(u, v, W, H)
     corners = (base, base + 1, base + W, base + W + 1)
     d = torch.stack([depth[c] for c in corners], -1)
     ok = torch.stack([valid[c] for c in corners], -1).all(-1)
     ok &= (d.max(-1).values - d.min(-1).values) <= EDGE_JUMP_PX * d_near / float(focal)
-    top = d[:, 0] * (1 - fu) + d[:, 1] * fu
-    bottom = d[:, 2] * (1 - fu) + d[:, 3] * fu
-    return torch.where(ok, top * (1 - fv) + bottom * fv, d_near)
+    return torch.where(ok, _blend(*d.unbind(-1), fu, fv), d_near)
 
 
 @dataclass
@@ -390,8 +393,9 @@ class TSDFVolume:
         self.weight = torch.zeros(m, device=self.device)
         self.color = torch.zeros(m, 3, device=self.device)
         self.color_weight = torch.zeros(m, device=self.device)
-        # the masks' lower bound on each voxel's value (0: none), applied by dense()
-        self.hull = torch.zeros(m, device=self.device)
+        # the masks' lower bound on each voxel's value (0: none), applied by dense();
+        # allocated by the first view that brings hull distances
+        self.hull: Tensor | None = None
 
     @torch.no_grad()
     def integrate(
@@ -428,6 +432,8 @@ class TSDFVolume:
         hull_dist = None
         if hull and frame.hull_dist is not None:
             hull_dist = frame.hull_dist.to(self.device, torch.float32).reshape(-1)
+            if self.hull is None:
+                self.hull = torch.zeros_like(self.tsdf)
         # P = K [R | t]: (u·z, v·z, z) = P (x, 1)
         P = cam.K(torch.float64) @ torch.cat([cam.R, cam.t[:, None]], 1)
         P = P.to(self.device, torch.float32)
@@ -443,7 +449,7 @@ class TSDFVolume:
                 self.points.numpy(), P.numpy(), arr(depth), arr(valid), arr(empty),
                 arr(view_w), arr(color), arr(hull_dist), W, H, cam.intrinsics.fx, EDGE_JUMP_PX,
                 HULL_MARGIN_PX, self.trunc, self.tsdf.numpy(), self.weight.numpy(),
-                self.color.numpy(), self.color_weight.numpy(), self.hull.numpy(),
+                self.color.numpy(), self.color_weight.numpy(), arr(self.hull),
             )  # fmt: skip
             return
         for s in range(0, self.points.shape[0], chunk):
@@ -456,7 +462,7 @@ class TSDFVolume:
             sel = inimg.nonzero()[:, 0]
             pix = (v[sel] * W + u[sel]).long()
             u_sel, v_sel = uvz[sel, 0] / zs[sel], uvz[sel, 1] / zs[sel]
-            if hull_dist is not None:
+            if hull_dist is not None and self.hull is not None:
                 at = bilinear_at(hull_dist, u_sel, v_sel, W, H)
                 bound = hull_bound(at, z[sel], cam.intrinsics.fx, self.trunc)
                 hidx = sel + s
@@ -496,10 +502,11 @@ class TSDFVolume:
         obs = torch.zeros(n, dtype=torch.bool)
         seen = self.weight.cpu() > 0
         idx = self.index.cpu()
-        hull = self.hull.cpu()  # 0: no bound (the voxel may lie on or in the object)
-        vol[idx[seen]] = torch.where(
-            hull > 0, torch.maximum(self.tsdf.cpu(), hull), self.tsdf.cpu()
-        )[seen]
+        tsdf = self.tsdf.cpu()
+        if self.hull is not None:  # a bound of 0 says nothing (on or in the object)
+            hull = self.hull.cpu()
+            tsdf = torch.where(hull > 0, torch.maximum(tsdf, hull), tsdf)
+        vol[idx[seen]] = tsdf[seen]
         obs[idx[seen]] = True
         return vol.reshape(self.grid.shape).numpy(), obs.reshape(self.grid.shape).numpy()
 

@@ -112,7 +112,7 @@ def integrate_compiled(
     weight: np.ndarray,
     col: np.ndarray,
     col_w: np.ndarray,
-    hull: np.ndarray,
+    hull: np.ndarray | None,
 ) -> None:
     """Update ``tsdf``, ``weight``, ``col``, ``col_w`` and the lower bounds ``hull``
     (the band's, float32) in place with one view: ``points`` (M, 3) voxel centres,
@@ -134,6 +134,6 @@ def integrate_compiled(
         none_f if hull_dist is None else hull_dist,
         flags, int(W), int(H), f32(f32(jump_px) / f32(focal)), f32(margin_px),
         f32(f32(1.0) / (f32(focal) * f32(trunc))), f32(trunc),
-        tsdf, weight, col, col_w, hull,
+        tsdf, weight, col, col_w, none_f if hull is None else hull,
     )  # fmt: skip
     run_ranges(_integrate_range, points.shape[0], args)
