@@ -327,6 +327,12 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--mesh-resolution", type=int, default=None, help="voxels across the box (default 256)"
     )
+    p.add_argument(
+        "--hull",
+        action="store_true",
+        help="bound the distance field by the masks' hull (masked views; exact masks only: "
+        "docs/benchmarks.md)",
+    )
 
 
 def _set_threads(n: int | None) -> None:
@@ -402,6 +408,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         voxel=args.voxel,
         trunc=args.trunc,
         mesh_resolution=args.mesh_resolution,
+        hull=args.hull,
         remesh=args.remesh,
         device=args.device,
         backend=args.backend,
@@ -440,6 +447,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             "voxel": args.voxel,
             "trunc": args.trunc,
             "mesh_resolution": args.mesh_resolution,
+            "hull": args.hull,
         },
         command=_bench_command(args),
         retime_fps=args.retime_fps,
@@ -465,6 +473,8 @@ def _bench_command(args: argparse.Namespace) -> str:
     ):
         if value is not None:
             parts.append(f"{flag} {value}")
+    if args.hull:
+        parts.append("--hull")
     if args.retime_fps:
         parts.append("--retime-fps")
     return " ".join(parts)
@@ -502,12 +512,6 @@ def _register_eval(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--scene", help="the run's scene folder (default: from scene.json)")
     _add_mesh_args(p)
     p.add_argument("--no-carve", action="store_true", help="do not carve empty pixels")
-    p.add_argument(
-        "--hull",
-        action="store_true",
-        help="bound the distance field by the masks' hull (masked views; exact masks only: "
-        "docs/benchmarks.md)",
-    )
     p.add_argument(
         "--keep-fraction",
         type=float,

@@ -158,3 +158,24 @@ def test_masked_views_carry_their_hull_distances(run, tmp_path: Path) -> None:  
     assert info["fusion"]["hull"] is False
     _, info = mesh_model(model, scene.train, tmp_path, resolution=32, hull=True, preview=False)
     assert info["fusion"]["hull"] is True
+
+
+def test_eval_reuses_a_mesh_only_with_the_same_hull_setting(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
+    """ensure_mesh (glint eval's mesh) keeps a mesh made with the same request and makes a
+    new one when --hull changes; a record from before the setting existed counts as
+    without it."""
+    from core.evaluation.evaluate import ensure_mesh
+
+    model, scene = run
+    _, first = ensure_mesh(model, scene.train, tmp_path, resolution=32)
+    assert first["fusion"]["hull"] is False and first["request"]["hull"] is False
+    info_path = tmp_path / "mesh.json"
+    old = json.loads(info_path.read_text())
+    del old["request"]["hull"]  # as written before the setting existed
+    old["marker"] = 1
+    info_path.write_text(json.dumps(old))
+    _, again = ensure_mesh(model, scene.train, tmp_path, resolution=32)
+    assert again.get("marker") == 1  # reused, not made again
+    _, hulled = ensure_mesh(model, scene.train, tmp_path, resolution=32, hull=True)
+    assert "marker" not in hulled and hulled["fusion"]["hull"] is True
+    assert json.loads(info_path.read_text())["request"]["hull"] is True

@@ -132,24 +132,30 @@ def ensure_mesh(
     voxel: float | None = None,
     trunc: float | None = None,
     resolution: int | None = None,
+    hull: bool = False,
     remesh: bool = False,
 ) -> tuple[trimesh.Trimesh, dict[str, Any]]:
     """The run's TSDF mesh: reuse mesh.ply when it was made from this checkpoint with
-    the same settings, else extract it from ``views`` (and write mesh.ply/.obj/.glb)."""
+    the same settings, else extract it from ``views`` (and write mesh.ply/.obj/.glb);
+    ``hull``: bound it by the masks' hull (tsdf.hull_bound)."""
     import trimesh
 
     from core.meshing.mesh import mesh_model
     from core.meshing.tsdf import DEFAULT_RESOLUTION
 
-    request = {"voxel": voxel, "trunc": trunc, "resolution": resolution or DEFAULT_RESOLUTION}
+    request = {
+        "voxel": voxel, "trunc": trunc, "resolution": resolution or DEFAULT_RESOLUTION,
+        "hull": hull,
+    }  # fmt: skip
     info_path = out / "mesh.json"
     if not remesh and info_path.is_file() and (out / "mesh.ply").is_file():
         info = json.loads(info_path.read_text())
-        if info.get("iteration") == model.iteration and info.get("request") == request:
+        made = {"hull": False, **(info.get("request") or {})}  # older records: no hull
+        if info.get("iteration") == model.iteration and made == request:
             mesh = trimesh.load(out / "mesh.ply", process=False, force="mesh")
             return mesh, info
     mesh, info = mesh_model(
-        model, views, out, voxel=voxel, trunc=trunc, resolution=request["resolution"]
+        model, views, out, voxel=voxel, trunc=trunc, resolution=request["resolution"], hull=hull
     )
     info["request"] = request
     info_path.write_text(json.dumps(info, indent=2))
@@ -171,6 +177,7 @@ def evaluate_run(
     voxel: float | None = None,
     trunc: float | None = None,
     mesh_resolution: int | None = None,
+    hull: bool = False,
     remesh: bool = False,
     fps_frames: int | None = None,
     device: str | None = None,
@@ -209,7 +216,7 @@ def evaluate_run(
     gt = load_gt_points(scene.root)
     mesh, mesh_info = ensure_mesh(
         model, scene.train, run, voxel=voxel, trunc=trunc, resolution=mesh_resolution,
-        remesh=remesh,
+        hull=hull, remesh=remesh,
     )  # fmt: skip
     ev["mesh"] = {k: mesh_info.get(k) for k in ("vertices", "faces", "watertight", "components")}
     ev["mesh"]["fusion"] = mesh_info.get("fusion")
