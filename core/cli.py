@@ -329,10 +329,9 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--hull",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="bound the distance field by the masks' hull, or not (default: the run's plan, "
-        "which turns it on where the masks agree with each other: docs/benchmarks.md)",
+        action="store_true",
+        help="bound the distance field by the masks' hull (masked views; exact masks only: "
+        "docs/benchmarks.md)",
     )
 
 
@@ -474,8 +473,8 @@ def _bench_command(args: argparse.Namespace) -> str:
     ):
         if value is not None:
             parts.append(f"{flag} {value}")
-    if args.hull is not None:
-        parts.append("--hull" if args.hull else "--no-hull")
+    if args.hull:
+        parts.append("--hull")
     if args.retime_fps:
         parts.append("--retime-fps")
     return " ".join(parts)

@@ -22,12 +22,10 @@ into a truncated signed distance field, and take its zero level set.
   alone is one vote among many: a membrane the model spans across a through hole, or a
   slab thicker than a thin part, is seen as surface by every view that does not look
   through it, and outvotes the few that do (rocker_gold_256's bore; docs/benchmarks.md).
-  The hull is the intersection of every view's mask, so masks that disagree by more than
-  half a pixel (a real capture's) cut the object: the run's plan turns it on only where
-  the masks agree (``core.training.mask_agreement``; ``hull=True/False`` overrides). Where
-  the model's surface lies more than a truncation outside the masks the bound removes it
-  with nothing behind it to close the hole (rocker_gold_256: 1.9% of the held-out masks
-  left uncovered against 0.3%, while its CD falls 17%).
+  Opt-in (``hull=True``, ``glint mesh --hull``): the hull is the intersection of every
+  view's mask, so masks that disagree by more than half a pixel (a real capture's) cut
+  the object, and where the model's surface lies more than a truncation outside the
+  masks the bound removes it with nothing behind it to close the hole.
 - **Bounds** tighten the scene's sphere (which loaders derive conservatively from the
   cameras) to robust percentiles of the back-projected surface pixels; voxel size
   and truncation default to 2·radius/256 and 4 voxels of the tightened box.

@@ -16,7 +16,7 @@ from typing import Any
 from core.config import TrainConfig
 
 # Parts a user may override with ``plan_overrides``; every decision of a plan.
-OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness", "hull")
+OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness")
 DECISION_KEYS = (
     "envmap",
     "envmap_resolution",
@@ -26,7 +26,6 @@ DECISION_KEYS = (
     "mesh",
     "silhouette",
     "roughness",
-    "hull",
 )
 # The paper's cube-map face size (6 × 128 × 128).
 PAPER_ENVMAP_RESOLUTION = 128
@@ -62,10 +61,6 @@ class ScenePlan:
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
     roughness: Decision = field(
-        default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
-    )
-    # meshes bounded by the masks' hull (core.training.mask_agreement says when)
-    hull: Decision = field(
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
 
