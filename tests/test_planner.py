@@ -130,3 +130,17 @@ def test_plan_records_envmap_resolution_and_config_wins(tmp_path):
     t = Trainer(scene, cfg, tmp_path)
     t.setup(resume=False)
     assert t.envmap is not None and t.envmap.resolution == 12
+
+
+def test_a_plan_with_a_decision_this_version_does_not_know_still_opens():
+    """A run planned by a later version (one more decision in plan.json) opens here: the
+    unknown decision is dropped, the rest read as written."""
+    from core.model.plan import ScenePlan
+
+    scene = make_scene("sphere", "diffuse", n_train=4, n_test=1, size=16, samples=1)
+    d = plan_scene(scene, config_from_dict({})).to_dict()
+    d["decisions"]["later_part"] = {"value": True, "reason": "from a later version"}
+    back = ScenePlan.from_dict(json.loads(json.dumps(d)))
+    assert back.to_dict() == json.loads(
+        json.dumps(plan_scene(scene, config_from_dict({})).to_dict())
+    )

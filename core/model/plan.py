@@ -85,7 +85,9 @@ class ScenePlan:
 
     @staticmethod
     def from_dict(d: dict[str, Any]) -> ScenePlan:
-        dec = {k: Decision(**v) for k, v in d["decisions"].items()}
+        # a decision this version does not know (a plan written by a later one) is
+        # dropped rather than refusing to open the run
+        dec = {k: Decision(**v) for k, v in d["decisions"].items() if k in DECISION_KEYS}
         return ScenePlan(
             neighbours=list(d.get("neighbours", [])), init=dict(d.get("init", {})), **dec
         )
