@@ -329,9 +329,10 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
     )
     p.add_argument(
         "--hull",
-        action="store_true",
-        help="bound the distance field by the masks' hull (masked views; exact masks only: "
-        "docs/benchmarks.md)",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="bound the distance field by the masks' hull, or not (default: the run's plan, "
+        "which turns it on where the masks agree with each other: docs/benchmarks.md)",
     )
 
 
@@ -473,8 +474,8 @@ def _bench_command(args: argparse.Namespace) -> str:
     ):
         if value is not None:
             parts.append(f"{flag} {value}")
-    if args.hull:
-        parts.append("--hull")
+    if args.hull is not None:
+        parts.append("--hull" if args.hull else "--no-hull")
     if args.retime_fps:
         parts.append("--retime-fps")
     return " ".join(parts)

@@ -347,3 +347,55 @@ def test_a_true_mask_leaves_the_surface_where_the_depths_put_it() -> None:
     # underestimates there), moving a crossing by a fraction of a voxel, never out
     assert abs(err[True].mean() - err[False].mean()) < 1e-3, (err[True].mean(), err[False].mean())
     assert err[True].max() <= err[False].max() + 1e-3
+
+
+def _bloated_sphere_frames(depth_radius: float, true_radius: float) -> list[DepthFrame]:
+    """12 views whose depths show a sphere of ``depth_radius`` (a model thicker than the
+    object) and whose masks show the true sphere of ``true_radius``."""
+    from core.meshing.tsdf import mask_hull_distance
+
+    frames = []
+    for cam in fibonacci_cameras(12, distance=3.0, size=SIZE):
+        uv = cam.pixel_centers(torch.float64).reshape(-1, 2)
+        o = cam.center.to(torch.float64)
+        d = cam.backproject(uv, torch.ones(uv.shape[0], dtype=torch.float64)) - o
+        dn = d / d.norm(dim=-1, keepdim=True)
+        b = (dn * o).sum(-1)
+        disc = b * b - (o * o).sum() + depth_radius**2
+        t = -b - disc.clamp_min(0).sqrt()  # distance along the unit ray to the near side
+        z = (t / d.norm(dim=-1)).reshape(SIZE, SIZE)  # z-depth (d has z = 1)
+        hit = (disc > 0).reshape(SIZE, SIZE)
+        empty = (_ray_miss_distance(cam, o + dn) > true_radius).reshape(SIZE, SIZE)
+        depth = torch.where(hit, z, torch.zeros_like(z)).float()
+        frames.append(
+            DepthFrame(cam, depth, hit & ~empty, empty, None, None, mask_hull_distance(empty))
+        )
+    return frames
+
+
+def test_the_hull_closes_a_surface_the_depths_put_beyond_the_band(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A model 0.2 thicker than the object all round (a slab over a thin part, lego's
+    base plate; carving off, so that every view's depths put the band behind the model's
+    surface inside, as the views that face a slab do): the masks lift every band voxel,
+    and the band holds nothing of the true surface. The closure gives the voxels behind
+    the lifted ones an inside where every mask may hold them, so the mesh closes on the
+    masks' hull (the sphere) instead of vanishing."""
+    import core.meshing.tsdf as tsdf
+
+    frames = _bloated_sphere_frames(0.8, SPHERE_RADIUS)
+
+    def mesh():  # type: ignore[no-untyped-def]
+        vol, params = fuse_depth_frames(
+            frames, center=torch.zeros(3), radius=2.0, resolution=80, carve=False, hull=True
+        )
+        assert params.trunc + params.voxel < 0.8 - SPHERE_RADIUS  # the band misses the truth
+        return extract_mesh(vol)
+
+    closed = mesh()
+    r = np.linalg.norm(closed.vertices, axis=1)
+    assert abs(float(np.median(r)) - SPHERE_RADIUS) < 0.05  # on the hull: within a voxel
+    dirs = closed.vertices / r[:, None]
+    probes = np.stack([np.asarray(c.center) for c in fibonacci_cameras(50, distance=1.0, size=4)])
+    assert float((probes @ dirs.T).max(axis=1).min()) > 0.95  # no direction left open
+    monkeypatch.setattr(tsdf.TSDFVolume, "_closure", lambda self, idx, lifted: None)
+    assert len(mesh().vertices) < len(closed.vertices) / 10  # without it: next to nothing

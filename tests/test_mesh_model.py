@@ -143,8 +143,9 @@ def test_cancel_and_bad_input_leave_nothing(run, tmp_path: Path) -> None:  # typ
 
 def test_masked_views_carry_their_hull_distances(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
     """Asked to, a view with a mask hands fusion its hull distances (0 on the object,
-    growing outside); by default none; mesh.json records whether the hull bounded the
-    field."""
+    growing outside); by default none; meshes follow the plan's hull decision (on: these
+    rendered masks agree) unless told, and mesh.json records whether the hull bounded
+    the field."""
     model, scene = run
     view = scene.train[0]
     assert view.mask is not None
@@ -154,10 +155,11 @@ def test_masked_views_carry_their_hull_distances(run, tmp_path: Path) -> None:  
     assert float(f.hull_dist[inside].abs().max()) == 0.0
     assert float(f.hull_dist[f.empty].min()) >= 1.0 and float(f.hull_dist.max()) > 3.0
     assert model_depth_frame(model, view, color=None).hull_dist is None  # off by default
+    assert model.plan is not None and model.plan.hull.value is True
     _, info = mesh_model(model, scene.train, tmp_path, resolution=32, preview=False)
-    assert info["fusion"]["hull"] is False
-    _, info = mesh_model(model, scene.train, tmp_path, resolution=32, hull=True, preview=False)
     assert info["fusion"]["hull"] is True
+    _, info = mesh_model(model, scene.train, tmp_path, resolution=32, hull=False, preview=False)
+    assert info["fusion"]["hull"] is False
 
 
 def test_eval_reuses_a_mesh_only_with_the_same_hull_setting(run, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
@@ -167,14 +169,14 @@ def test_eval_reuses_a_mesh_only_with_the_same_hull_setting(run, tmp_path: Path)
     from core.evaluation.evaluate import ensure_mesh
 
     model, scene = run
-    _, first = ensure_mesh(model, scene.train, tmp_path, resolution=32)
+    _, first = ensure_mesh(model, scene.train, tmp_path, resolution=32, hull=False)
     assert first["fusion"]["hull"] is False and first["request"]["hull"] is False
     info_path = tmp_path / "mesh.json"
     old = json.loads(info_path.read_text())
     del old["request"]["hull"]  # as written before the setting existed
     old["marker"] = 1
     info_path.write_text(json.dumps(old))
-    _, again = ensure_mesh(model, scene.train, tmp_path, resolution=32)
+    _, again = ensure_mesh(model, scene.train, tmp_path, resolution=32, hull=False)
     assert again.get("marker") == 1  # reused, not made again
     _, hulled = ensure_mesh(model, scene.train, tmp_path, resolution=32, hull=True)
     assert "marker" not in hulled and hulled["fusion"]["hull"] is True

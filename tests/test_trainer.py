@@ -71,6 +71,7 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         "mesh",
         "silhouette",
         "roughness",
+        "hull",
     }
     assert not plan["decisions"]["envmap"]["pending"]
     # roughness is decided with the env map: on with it, off without it

@@ -132,17 +132,18 @@ def ensure_mesh(
     voxel: float | None = None,
     trunc: float | None = None,
     resolution: int | None = None,
-    hull: bool = False,
+    hull: bool | None = None,
     remesh: bool = False,
 ) -> tuple[trimesh.Trimesh, dict[str, Any]]:
     """The run's TSDF mesh: reuse mesh.ply when it was made from this checkpoint with
     the same settings, else extract it from ``views`` (and write mesh.ply/.obj/.glb);
-    ``hull``: bound it by the masks' hull (tsdf.hull_bound)."""
+    ``hull``: bound it by the masks' hull (tsdf.hull_bound); None: as the run's plan says."""
     import trimesh
 
-    from core.meshing.mesh import mesh_model
+    from core.meshing.mesh import mesh_model, planned_hull
     from core.meshing.tsdf import DEFAULT_RESOLUTION
 
+    hull = planned_hull(model) if hull is None else hull
     request = {
         "voxel": voxel, "trunc": trunc, "resolution": resolution or DEFAULT_RESOLUTION,
         "hull": hull,
@@ -177,7 +178,7 @@ def evaluate_run(
     voxel: float | None = None,
     trunc: float | None = None,
     mesh_resolution: int | None = None,
-    hull: bool = False,
+    hull: bool | None = None,
     remesh: bool = False,
     fps_frames: int | None = None,
     device: str | None = None,

@@ -149,6 +149,13 @@ def simplify_mesh(mesh: trimesh.Trimesh, vol: TSDFVolume, faces: int) -> trimesh
     return out
 
 
+def planned_hull(model: TrainedModel) -> bool:
+    """Whether the run's plan bounds its meshes by the masks' hull (on where the masks
+    agree with each other, core.training.mask_agreement); False for a run without that
+    decision (older runs, checkpoints of other tools)."""
+    return bool(model.plan is not None and model.plan.hull.value)
+
+
 def mesh_model(
     model: TrainedModel,
     views: Sequence[View],
@@ -158,7 +165,7 @@ def mesh_model(
     trunc: float | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     carve: bool = True,
-    hull: bool = False,
+    hull: bool | None = None,
     keep_fraction: float = 0.1,
     color: str = "base",
     simplify: int | None = None,
@@ -173,7 +180,10 @@ def mesh_model(
     ``progress(stage, done, total)`` follows the passes over the views (``bounds``,
     ``band``, ``integrate``) and the last steps (``extract``, ``write``);
     ``should_stop()`` is asked between views and raises :class:`MeshCancelledError`.
+    ``hull``: bound the distance field by the masks' hull; None: as the run's plan says
+    (:func:`planned_hull`).
     """
+    hull = planned_hull(model) if hull is None else hull
     if model.center is None or model.radius is None:
         raise ValueError("the model has no scene box: open it with its scene (open_run)")
     if color not in MESH_COLORS:

@@ -16,7 +16,7 @@ from typing import Any
 from core.config import TrainConfig
 
 # Parts a user may override with ``plan_overrides``; every decision of a plan.
-OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness")
+OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness", "hull")
 DECISION_KEYS = (
     "envmap",
     "envmap_resolution",
@@ -26,6 +26,7 @@ DECISION_KEYS = (
     "mesh",
     "silhouette",
     "roughness",
+    "hull",
 )
 # The paper's cube-map face size (6 × 128 × 128).
 PAPER_ENVMAP_RESOLUTION = 128
@@ -61,6 +62,10 @@ class ScenePlan:
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
     roughness: Decision = field(
+        default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
+    )
+    # meshes bounded by the masks' hull (core.training.mask_agreement says when)
+    hull: Decision = field(
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
 

@@ -1,14 +1,14 @@
 """The scene planner: decide, record and let users override which parts a scene needs.
 
 Decisions made before training (from the capture alone): multi-view neighbours per
-view, background handling, mesh extraction. The environment map / deferred shading
-and the SH degree need evidence of view dependence, which needs geometry: they are
-decided at the end of the RGB-only phase (the env map is not used before then
-anyway) by warping training views into their neighbours through the phase-1 depth
-and comparing how much the *captured* colours of the same surface point differ
-with how much the *view-independent model's* colours differ (its difference is
-pure misregistration). A part decided off is never built or computed. The plan
-itself (what is decided) is :class:`core.model.plan.ScenePlan`.
+view, background handling, mesh extraction and whether the masks' hull bounds the mesh.
+The environment map / deferred shading and the SH degree need evidence of view
+dependence, which needs geometry: they are decided at the end of the RGB-only phase
+(the env map is not used before then anyway) by warping training views into their
+neighbours through the phase-1 depth and comparing how much the *captured* colours of
+the same surface point differ with how much the *view-independent model's* colours
+differ (its difference is pure misregistration). A part decided off is never built or
+computed. The plan itself (what is decided) is :class:`core.model.plan.ScenePlan`.
 """
 
 from __future__ import annotations
@@ -27,6 +27,7 @@ from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer
 from core.scene.cameras import Camera
 from core.scene.views import Scene, View
+from core.training.mask_agreement import MAX_UNSUPPORTED, unsupported_rim_share
 
 # Two readings of view dependence, both "captured minus view-independent model" over
 # surface points seen by a view and its neighbour (sRGB units):
@@ -217,7 +218,7 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
     plan = ScenePlan(
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
             [float(c.intrinsics.fx) for c in cams], cfg), silhouette=silhouette,
-        roughness=plan_roughness(cfg),
+        roughness=plan_roughness(cfg), hull=decide_hull(scene),
     )  # fmt: skip
     _apply_overrides(plan, cfg)
     if not plan.envmap.pending:  # the user set the env map: no probe will decide roughness
@@ -248,6 +249,29 @@ def decide_multi_view(
         )
         return Decision(False, reason, evidence)
     return Decision(True, f"{with_neighbour}/{views} views have a neighbour", evidence)
+
+
+def decide_hull(scene: Scene) -> Decision:
+    """Meshes bounded by the masks' hull where the masks agree with each other
+    (core.training.mask_agreement: on rendered captures; off on photo masks, whose
+    intersection cuts the object). ``plan_overrides.hull`` and ``glint mesh --hull /
+    --no-hull`` override it."""
+    evidence = unsupported_rim_share(scene)
+    share = evidence["share"]
+    if share is None:
+        return Decision(False, "fewer than two views have masks: no hull", evidence)
+    measured = (
+        f"{share:.2%} of the rays one pixel inside the {evidence['views']} masks' "
+        "silhouettes miss the intersection of all masks"
+    )
+    if share <= MAX_UNSUPPORTED:
+        return Decision(
+            True, f"the masks agree ({measured}, ≤ {MAX_UNSUPPORTED:.0%}): the mesh is "
+            "bounded by their hull (membranes across holes and slabs over thin parts go)",
+            evidence)  # fmt: skip
+    return Decision(
+        False, f"the masks disagree ({measured}, > {MAX_UNSUPPORTED:.0%}): their hull "
+        "would cut the object, so meshes are not bounded by it", evidence)  # fmt: skip
 
 
 def decide_silhouette(scene: Scene, cfg: TrainConfig) -> Decision:
