@@ -62,3 +62,13 @@ def test_mesh_commands_follow_the_plan_unless_told() -> None:
     bench = ["bench", "s", "--budget", "10"]
     assert "hull" not in _bench_command(p.parse_args(bench))
     assert _bench_command(p.parse_args([*bench, "--no-hull"])).endswith("--no-hull")
+
+
+def test_bench_cli_prints_the_share_of_a_scene_on_disk(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]
+    from bench.mask_agreement import main
+    from core.scene.formats.writers import write_blender
+
+    write_blender(_sphere(n_train=6), tmp_path / "s")
+    main([str(tmp_path / "s"), "--rays", "20"])
+    row = capsys.readouterr().out.splitlines()[1].split()
+    assert row[1:4] == ["6", "120", "0.0000"]
