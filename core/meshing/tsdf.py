@@ -25,9 +25,12 @@ into a truncated signed distance field, and take its zero level set.
   The hull is the intersection of every view's mask, so masks that disagree by more than
   half a pixel (a real capture's) cut the object: the run's plan turns it on only where
   the masks agree (``core.training.mask_agreement``; ``hull=True/False`` overrides). Where
-  the model's surface lies more than a truncation outside the masks the bound removes it
-  with nothing behind it to close the hole (rocker_gold_256: 1.9% of the held-out masks
-  left uncovered against 0.3%, while its CD falls 17%).
+  the model's surface lies more than a truncation outside the masks the bound lifts the
+  whole band there, and nothing inside it holds the true surface: the *closure*
+  (``TSDFVolume._closure``) gives the unobserved voxels within two truncations of a lifted
+  voxel the depths put inside an inside (−1) where every mask may hold them, so the
+  surface closes on the masks' hull instead of leaving a hole (lego_real's thin base plate:
+  held-out mask IoU 0.932 without it, 0.977 with it, 0.980 without the hull).
 - **Bounds** tighten the scene's sphere (which loaders derive conservatively from the
   cameras) to robust percentiles of the back-projected surface pixels; voxel size
   and truncation default to 2·radius/256 and 4 voxels of the tightened box.
