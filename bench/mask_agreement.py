@@ -1,4 +1,4 @@
-"""Do a capture's masks agree with each other? A probe for when the mask hull is safe.
+"""Do a capture's masks agree with each other? The measurement behind the plan's mesh hull.
 
 The mesh's mask hull (``glint mesh --hull``, ``core.meshing.tsdf`` ``hull_dist``) lifts
 every voxel some view's mask puts outside the object. It is only right when every mask
@@ -11,8 +11,8 @@ through the scene's sphere and each sample tested against all masks
 rays that never enter the intersection is how much the masks disagree: 0–0.16% on the
 ten rendered dev captures, 37% on goldcape's photo masks.
 
-Agreement is necessary, not sufficient: on lego_real (0.16%) the hull still cut holes
-where the model's surface lies more than a truncation outside the masks (docs/benchmarks.md).
+The scene plan makes the same measurement (core.training.mask_agreement) and bounds meshes
+by the hull at ≤ 2%; this prints it for any captures, e.g. to see why a plan left it off.
 
     python -m bench.mask_agreement ../shared/data/teapot_gold ../shared/data/goldcape_llff:2
 """
