@@ -2,7 +2,7 @@
 
 Why. The mesh's mask hull (``core.meshing.tsdf``, ``hull_dist``) lifts every voxel that
 some view's mask puts outside the object, which removes membranes across holes and slabs
-over thin parts that the depths alone keep (rocker_gold_256 CD×10² 1.80 → 1.38). It is
+over thin parts that the depths alone keep (rocker_gold_256 CD×10² 1.80 → 1.37). It is
 only right when every mask holds the whole object: a real capture's masks (segmentation
 slips, pose error) each miss a little, their intersection erodes the object, and the hull
 then cuts it (goldcape_llff: 2.0% → 4.9% of the held-out masks left out;
