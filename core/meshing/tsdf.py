@@ -541,26 +541,25 @@ class TSDFVolume:
             return None
         shape = self.grid.shape
         reach = max(1, math.ceil(CLOSURE_REACH * self.trunc / self.grid.voxel))
-        ijk = np.stack(np.unravel_index(band_idx[lifted_solid].numpy(), shape), 1)
-        lo = np.maximum(ijk.min(0) - reach, 0)
-        hi = np.minimum(ijk.max(0) + reach + 1, shape)
-        box = tuple(slice(int(a), int(b)) for a, b in zip(lo, hi, strict=True))
-        # the dilation runs in the seeds' box only (a few % of the grid where the hull
-        # lifts little), one pass per voxel of reach
-        seed = np.zeros(shape, dtype=bool)
-        seed[tuple(ijk.T)] = True
-        observed = np.zeros(shape, dtype=bool)
-        observed.reshape(-1)[band_idx.numpy()] = True
-        grown = np.zeros(shape, dtype=bool)
-        grown[box] = binary_dilation(seed[box], iterations=reach)
-        cand = torch.from_numpy(np.flatnonzero(grown & ~observed))
+        band = np.stack(np.unravel_index(band_idx.numpy(), shape), 1)
+        seeds = band[lifted_solid.numpy()]
+        # everything happens in the seeds' box grown by the reach (the dilation cannot
+        # leave it): a few % of the grid where the hull lifts little
+        lo = np.maximum(seeds.min(0) - reach, 0)
+        hi = np.minimum(seeds.max(0) + reach + 1, shape)
+        grown = np.zeros(tuple(hi - lo), dtype=bool)
+        grown[tuple((seeds - lo).T)] = True
+        grown = binary_dilation(grown, iterations=reach)
+        in_box = ((band >= lo) & (band < hi)).all(1)
+        grown[tuple((band[in_box] - lo).T)] = False  # observed voxels keep their values
+        cand = torch.from_numpy(np.ravel_multi_index((np.argwhere(grown) + lo).T, shape))
         if cand.numel() == 0:
             return None
-        pts = self.grid.centers(cand)
+        pts = self.grid.centers(cand).to(torch.float64)
         bound = torch.zeros(cand.numel())
         for cam, dist in self.hull_views:
             H, W = cam.height, cam.width
-            uv, z = cam.project(pts.to(torch.float64))
+            uv, z = cam.project(pts)
             u, v = uv[:, 0].float(), uv[:, 1].float()
             ok = (z > 1e-6) & (u >= 0) & (u < W) & (v >= 0) & (v < H)
             if not bool(ok.any()):

@@ -26,7 +26,7 @@ import torch.nn.functional as F
 
 from core.scene.views import Scene
 from core.training.init_points import inside_hull
-from core.training.silhouette import boundary_pixels
+from core.training.silhouette import boundary_pixels, pixel_centres, pixel_rays, sphere_march
 
 RAYS_PER_VIEW = 100
 MARCH_SAMPLES = 192
@@ -61,16 +61,8 @@ def unsupported_rim_share(
         if idx.numel() == 0:
             continue
         idx = idx[torch.randperm(idx.numel(), generator=gen)[:rays_per_view]]
-        W = v.width
-        uv = torch.stack([(idx % W).double() + 0.5, (idx // W).double() + 0.5], -1)
-        o = v.camera.center.to(torch.float64)
-        d = v.camera.backproject(uv, torch.ones(len(idx), dtype=torch.float64)) - o
-        d = d / d.norm(dim=-1, keepdim=True)
-        oc = o - c
-        b = (d * oc).sum(-1)
-        disc = (b * b - (oc * oc).sum() + r * r).clamp_min(0).sqrt()
-        t0, t1 = (-b - disc).clamp_min(1e-6), -b + disc
-        t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, samples, dtype=torch.float64)
+        o, d = pixel_rays(v.camera, pixel_centres(idx, v.width))
+        t, _ = sphere_march(o, d, c, r, samples)
         pts = (o + d[:, None, :] * t[..., None]).reshape(-1, 3)
         hit = inside_hull(pts, scene, 1.0).reshape(len(idx), samples).any(1)
         shares.append(float((~hit).float().mean()))

@@ -76,6 +76,34 @@ def boundary_pixels(mask: Tensor) -> Tensor:
     return (m & outside_nb).reshape(-1).nonzero()[:, 0]
 
 
+def pixel_centres(idx: Tensor, width: int) -> Tensor:
+    """(N, 2) float64 continuous positions of the centres of flat pixel indices ``idx``."""
+    return torch.stack([(idx % width).double() + 0.5, (idx // width).double() + 0.5], -1)
+
+
+def pixel_rays(camera: Camera, uv: Tensor) -> tuple[Tensor, Tensor]:
+    """The camera's centre (3,) and unit directions (N, 3), float64, through the
+    continuous pixel positions ``uv`` (N, 2)."""
+    o = camera.center
+    d = camera.backproject(uv, torch.ones(len(uv), dtype=torch.float64)) - o
+    return o, d / d.norm(dim=-1, keepdim=True)
+
+
+def sphere_march(
+    o: Tensor, d: Tensor, center: Tensor, radius: float, samples: int
+) -> tuple[Tensor, Tensor]:
+    """(N, samples) evenly spaced distances along each ray from ``o`` over its chord
+    through the sphere (from the origin when it lies inside), and (N,) whether the ray
+    meets the sphere at all."""
+    oc = o - center
+    b = (d * oc).sum(-1)
+    disc = b * b - (oc * oc).sum() + radius * radius
+    root = disc.clamp_min(0).sqrt()
+    t0, t1 = (-b - root).clamp_min(1e-6), -b + root
+    t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, samples, dtype=torch.float64)
+    return t, disc > 0
+
+
 def edge_offsets(mask: Tensor, idx: Tensor) -> tuple[Tensor, Tensor]:
     """(M, 2) pixel offsets from boundary pixel centres to the silhouette itself, and
     (M, 2) the silhouette's unit outward normals in the image.
@@ -127,20 +155,11 @@ def silhouette_points(
             idx = idx[torch.randperm(idx.numel(), generator=gen)[:per_view]]
         if idx.numel() == 0:
             continue
-        W = v.width
         off, outward = edge_offsets(v.mask, idx)
-        uv = torch.stack([(idx % W).double() + 0.5, (idx // W).double() + 0.5], -1) + off
-        o = v.camera.center
-        d = v.camera.backproject(uv, torch.ones(len(idx), dtype=torch.float64)) - o
-        d = d / d.norm(dim=-1, keepdim=True)
-        oc = o - c
-        b = (d * oc).sum(-1)
-        disc = b * b - (oc * oc).sum() + r * r
-        t0 = (-b - disc.clamp_min(0).sqrt()).clamp_min(1e-6)
-        t1 = -b + disc.clamp_min(0).sqrt()
-        t = t0[:, None] + (t1 - t0)[:, None] * torch.linspace(0, 1, samples, dtype=torch.float64)
+        o, d = pixel_rays(v.camera, pixel_centres(idx, v.width) + off)
+        t, meets = sphere_march(o, d, c, r, samples)
         inside = inside_hull((o + d[:, None, :] * t[..., None]).reshape(-1, 3), scene, min_fraction)
-        inside = inside.reshape(len(idx), samples) & (disc > 0)[:, None]
+        inside = inside.reshape(len(idx), samples) & meets[:, None]
         first = inside.float().argmax(1)
         last = samples - 1 - inside.flip(1).float().argmax(1)
         span = torch.arange(samples)[None, :]
