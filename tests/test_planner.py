@@ -144,3 +144,26 @@ def test_a_plan_with_a_decision_this_version_does_not_know_still_opens():
     assert back.to_dict() == json.loads(
         json.dumps(plan_scene(scene, config_from_dict({})).to_dict())
     )
+
+
+def test_a_resumed_run_keeps_its_plan_without_planning_again(tmp_path, monkeypatch):
+    """Resume reads the checkpoint's plan: planning (which measures the masks) is not
+    repeated and thrown away; a bad override still fails when the trainer is built."""
+    import core.training.trainer as trainer_mod
+
+    scene = make_scene("sphere", "mirror", n_train=8, n_test=1, size=24, samples=1)
+    cfg = config_from_dict({"iterations": 6, "init_points": 200, "envmap_resolution": 8})
+    t = Trainer(scene, cfg, tmp_path)
+    t.setup(resume=False)
+    t.train()
+    written = t.plan.to_dict()
+
+    def no_planning(*_a, **_k):
+        raise AssertionError("a resumed run planned its scene again")
+
+    monkeypatch.setattr(trainer_mod, "plan_scene", no_planning)
+    again = Trainer(scene, cfg, tmp_path)
+    again.setup(resume=True)
+    assert again.iteration == 6 and again.plan.to_dict() == written
+    with pytest.raises(ConfigError, match=r"plan_overrides\.bogus"):
+        Trainer(scene, config_from_dict({"plan_overrides": {"bogus": True}}), tmp_path / "b")

@@ -134,21 +134,28 @@ def find_neighbours(
     return out
 
 
-def _apply_overrides(
-    plan: ScenePlan, cfg: TrainConfig, only: tuple[str, ...] = OVERRIDABLE
-) -> None:
+def check_overrides(cfg: TrainConfig) -> None:
+    """Raise ConfigError for a ``plan_overrides`` entry no plan can take (unknown part,
+    wrong type), before anything is planned or trained."""
     for key, value in cfg.plan_overrides.items():
         if key not in OVERRIDABLE:
             raise ConfigError(
                 f"config: field 'plan_overrides.{key}': unknown plan part "
                 f"(expected one of {', '.join(OVERRIDABLE)})"
             )
-        if key not in only:
-            continue
         if key == "sh_degree" and (not isinstance(value, int) or not 0 <= value <= 3):
             raise ConfigError("config: field 'plan_overrides.sh_degree': expected 0..3")
         if key != "sh_degree" and not isinstance(value, bool):
             raise ConfigError(f"config: field 'plan_overrides.{key}': expected true or false")
+
+
+def _apply_overrides(
+    plan: ScenePlan, cfg: TrainConfig, only: tuple[str, ...] = OVERRIDABLE
+) -> None:
+    check_overrides(cfg)
+    for key, value in cfg.plan_overrides.items():
+        if key not in only:
+            continue
         old: Decision = getattr(plan, key)
         setattr(
             plan,

@@ -58,7 +58,12 @@ from core.training.losses import (
     single_view_loss,
 )
 from core.training.optim import make_optimizers, means_lr, set_lr
-from core.training.planner import decide_envmap, plan_scene, probe_view_dependence
+from core.training.planner import (
+    check_overrides,
+    decide_envmap,
+    plan_scene,
+    probe_view_dependence,
+)
 from core.training.silhouette import SilhouetteDepth, silhouette_points
 
 Event = dict[str, Any]
@@ -177,7 +182,8 @@ class Trainer:
         self.metrics = MetricsLog(self.out / "metrics.jsonl")
         self._order: list[int] = []
         self._targets = [self._to_device(v) for v in scene.train]
-        self.plan: ScenePlan = plan_scene(scene, cfg)
+        check_overrides(cfg)  # a bad override fails here, not after setup's work
+        self._plan: ScenePlan | None = None  # planned on first use: a resume reads its own
         self.gaussians: Gaussians
         self.envmap: EnvMap | None = None
         self.optimizers: dict[str, Adam] = {}
@@ -185,6 +191,18 @@ class Trainer:
         self.silhouette: SilhouetteDepth | None = None
         self.last_eval: dict[str, Any] = {}
         self.last_losses: dict[str, float] = {}
+
+    @property
+    def plan(self) -> ScenePlan:
+        """The scene plan: the checkpoint's on resume, else planned from the capture on
+        first use (planning measures the masks, 1–4 s, which a resume would throw away)."""
+        if self._plan is None:
+            self._plan = plan_scene(self.scene, self.cfg)
+        return self._plan
+
+    @plan.setter
+    def plan(self, plan: ScenePlan) -> None:
+        self._plan = plan
 
     # -- setup ------------------------------------------------------------
     def _to_device(self, v: View) -> View:
