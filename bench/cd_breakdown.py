@@ -15,7 +15,8 @@ CD = (d(P→G) + d(G→P)) / 2 says how wrong a mesh is, not where. This splits 
   true surface (0 on the hull; a visual hull cannot see deeper than that, so this is
   where only shading and multi-view terms can put the surface). With ``--run``, the
   same bins for the run's rendered depth on the test views (signed, − = in front of the
-  truth), which says whether the splats or the mesh fusion put a surface there.
+  truth), which says whether the splats or the mesh fusion put a surface there. With
+  ``--plot F.png``, a picture of the true points the mesh misses (three axis views).
 
     python -m bench.cd_breakdown MESH.ply --scene ../shared/data/fandisk_copper [--run RUN]
 """
@@ -164,6 +165,45 @@ def rendered_depth_by_hull_depth(
     return out
 
 
+def plot_missed(
+    mesh_points: np.ndarray, gt_points: np.ndarray, path: Path, *, beyond: float = 0.015
+) -> dict[str, float]:
+    """Draw where the mesh misses the truth: the true points farther than ``beyond`` from
+    the mesh, coloured by that distance, over the whole object in grey, seen along each
+    axis (x–y, x–z, y–z). A number says how much; the picture says which part. Returns the
+    share of true points drawn and the share of the completeness they carry."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    d, _ = cKDTree(mesh_points).query(gt_points, workers=-1)
+    far = d > beyond
+    rest = np.flatnonzero(~far)[:: max(1, int((~far).sum()) // 20_000)]
+    fig, axes = plt.subplots(1, 3, figsize=(15, 5.2), constrained_layout=True)
+    sc = None
+    for ax, (i, j) in zip(axes, ((0, 1), (0, 2), (1, 2)), strict=True):
+        ax.scatter(gt_points[rest, i], gt_points[rest, j], s=0.3, c="0.8", linewidths=0)
+        order = np.flatnonzero(far)[np.argsort(d[far])]  # farthest drawn last, on top
+        sc = ax.scatter(gt_points[order, i], gt_points[order, j], s=1.0, c=d[order],
+                        cmap="inferno", vmin=beyond, vmax=max(4 * beyond, float(d.max())),
+                        linewidths=0)  # fmt: skip
+        ax.set_aspect("equal")
+        ax.set_xlabel("xyz"[i])
+        ax.set_ylabel("xyz"[j])
+    share = float(far.mean())
+    carried = float(d[far].sum() / max(d.sum(), 1e-30))
+    fig.suptitle(
+        f"true points farther than {beyond:g} from the mesh: {share:.1%} of them, "
+        f"{carried:.0%} of the completeness error"
+    )
+    if sc is not None:
+        fig.colorbar(sc, ax=axes, shrink=0.8, label="distance to the mesh")
+    fig.savefig(path, dpi=80)
+    plt.close(fig)
+    return {"missed_share": share, "missed_completeness_share": carried}
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -174,6 +214,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--crease-radius", type=float, default=0.02)
     ap.add_argument("--crease-deg", type=float, default=30.0)
     ap.add_argument("--run", type=Path, help="run folder: also bin its rendered test depth")
+    ap.add_argument("--plot", type=Path, help="PNG: where the mesh misses the truth (three views)")
+    ap.add_argument("--beyond", type=float, default=0.015, help="what --plot calls missed")
     args = ap.parse_args(argv)
     import trimesh
 
@@ -187,6 +229,9 @@ def main(argv: list[str] | None = None) -> None:
         res["rendered_depth_by_hull_depth"] = rendered_depth_by_hull_depth(
             args.run, args.scene, gt["points"]
         )
+    if args.plot is not None:
+        res["plot"] = {"file": str(args.plot), "beyond": args.beyond,
+                       **plot_missed(pts, gt["points"], args.plot, beyond=args.beyond)}  # fmt: skip
     print(json.dumps(res, indent=2))
 
 

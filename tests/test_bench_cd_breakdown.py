@@ -99,3 +99,21 @@ def test_the_groove_lands_in_the_deeper_hull_bin() -> None:
     on_hull, floor = res["hull depth < 0.01"], res["hull depth >= 0.15"]
     assert floor["completeness_x100"] > 10 * on_hull["completeness_x100"]
     assert floor["completeness_x100"] > 15.0  # the floor is 0.2 below the lid
+
+
+def test_the_plot_draws_the_groove_as_what_the_mesh_misses(tmp_path) -> None:
+    """--plot: the filled groove's truth is what is drawn as missed, and its share of the
+    completeness error is most of it; a mesh of the true surface misses nothing."""
+    from bench.cd_breakdown import plot_missed
+
+    gt = _notched_box_truth(np.random.default_rng(8))
+    full = trimesh.creation.box(extents=(1.0, 1.0, 1.0))
+    pred, _ = sample_surface(full.vertices, full.faces, 60_000, seed=9)
+    out = plot_missed(pred, gt["points"], tmp_path / "missed.png", beyond=0.05)
+    in_groove = (np.abs(gt["points"][:, 0]) < 0.2) & (gt["points"][:, 2] < 0.45)
+    assert abs(out["missed_share"] - in_groove.mean()) < 0.35 * in_groove.mean()
+    assert out["missed_completeness_share"] > 0.6
+    png = (tmp_path / "missed.png").read_bytes()
+    assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
+    true = plot_missed(gt["points"], gt["points"], tmp_path / "none.png", beyond=0.05)
+    assert true["missed_share"] == 0.0
