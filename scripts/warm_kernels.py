@@ -37,7 +37,8 @@ from core.training.run import train_scene
 
 def float64_paths() -> None:
     """A float64 G-buffer pass with its backward on the compiled CPU backend, the cube
-    map lookup and the multi-view loss: the float64 signatures the tests use."""
+    map lookup, the multi-view loss and SSIM's blur: the float64 signatures the tests use."""
+    from core.evaluation.ssim import ssim
     from core.render.envmap import sample_cube
     from core.render.gbuffer import render_gbuffer_tensors
     from core.scene.cameras import Camera, Intrinsics
@@ -70,6 +71,8 @@ def float64_paths() -> None:
     ones = torch.ones(size, size, dtype=torch.bool)
     loss, _ = multi_view_loss(d_ref, ones, cam, d_nb, ones, nb)
     loss.backward()
+    img = torch.rand(size, size, 3, generator=gen, dtype=f64).requires_grad_(True)
+    ssim(img, torch.rand(size, size, 3, generator=gen, dtype=f64)).backward()
 
 
 def main() -> int:

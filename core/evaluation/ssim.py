@@ -7,6 +7,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
+
 _SSIM_C1 = 0.01**2
 _SSIM_C2 = 0.03**2
 
@@ -40,20 +42,40 @@ def _mean_ssim(mu_x: Tensor, mu_y: Tensor, exx: Tensor, eyy: Tensor, exy: Tensor
     return (num / den).mean()
 
 
-def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+def ssim(
+    img: Tensor,
+    ref: Tensor,
+    window: int = 11,
+    sigma: float = 1.5,
+    *,
+    compiled: bool | None = None,
+) -> Tensor:
     """Mean SSIM of two (H, W, C) images, 3DGS's variant: 11×11 Gaussian, zero padding.
 
-    The local moments are blurred with separable, grouped convolutions, the rendered
-    image's three in one call and the reference's two in another (no gradient flows
-    there): 1.4–1.8× faster forward + backward than five 2D convolutions from 128² to
-    800² (``python -m bench.ssim_loss``), the same value up to rounding.
+    The local moments are blurred separably, the rendered image's three in one call and
+    the reference's two in another (no gradient flows there). ``compiled`` (None: on
+    CPU float tensors): the numba blur of core.evaluation.blur_compiled, else grouped
+    convolutions (the torch path, the GPU's); both 1D passes give the 2D window's
+    value up to rounding (``python -m bench.ssim_loss`` times all three).
     """
     x = img.permute(2, 0, 1)
     y = ref.permute(2, 0, 1)
     c = x.shape[0]
     taps = _gaussian_taps(window, sigma, x)
-    mu_x, exx, exy = _gaussian_blur(torch.cat([x, x * x, x * y])[None], taps)[0].split(c)
-    mu_y, eyy = _gaussian_blur(torch.cat([y, y * y])[None], taps)[0].split(c)
+    if compiled is None:
+        compiled = cpu_float(img, ref)
+    if compiled:
+        from core.evaluation.blur_compiled import blur_compiled
+
+        def blur(maps: Tensor) -> Tensor:
+            return blur_compiled(maps, taps)
+    else:
+
+        def blur(maps: Tensor) -> Tensor:
+            return _gaussian_blur(maps[None], taps)[0]
+
+    mu_x, exx, exy = blur(torch.cat([x, x * x, x * y])).split(c)
+    mu_y, eyy = blur(torch.cat([y, y * y])).split(c)
     return _mean_ssim(mu_x, mu_y, exx, eyy, exy)
 
 
