@@ -5,7 +5,7 @@
 
 Every training step evaluates ``rgb_loss``, whose D-SSIM blurs five local moments
 with 3DGS's 11×11 Gaussian window. On the CPU ``core.evaluation.ssim.ssim`` blurs
-with the compiled separable kernel (core.evaluation.blur_compiled); ``--plain
+with the compiled separable kernel (core.evaluation.ssim_compiled); ``--plain
 separable`` (the default) times it against the torch path of the same function (one
 grouped, separable convolution, what the GPU runs), ``--plain window`` times that
 torch path against ``ssim_reference`` (five 2D convolutions, the plain definition).

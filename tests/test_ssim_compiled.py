@@ -1,4 +1,4 @@
-"""The compiled SSIM blur (core.evaluation.blur_compiled) against the torch paths.
+"""The compiled SSIM blur (core.evaluation.ssim_compiled) against the torch paths.
 
 Values and gradients of ``ssim`` with the numba blur must equal the grouped-convolution
 path and the plain 2D window up to rounding, on images smaller than the window, not
@@ -10,8 +10,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.evaluation.blur_compiled import blur_compiled
 from core.evaluation.ssim import _gaussian_blur, _gaussian_taps, ssim, ssim_reference
+from core.evaluation.ssim_compiled import blur_compiled
 from core.kernels.pool import set_kernel_threads
 
 

@@ -54,7 +54,7 @@ def ssim(
 
     The local moments are blurred separably, the rendered image's three in one call and
     the reference's two in another (no gradient flows there). ``compiled`` (None: on
-    CPU float tensors): the numba blur of core.evaluation.blur_compiled, else grouped
+    CPU float tensors): the numba blur of core.evaluation.ssim_compiled, else grouped
     convolutions (the torch path, the GPU's); both 1D passes give the 2D window's
     value up to rounding (``python -m bench.ssim_loss`` times all three).
     """
@@ -65,7 +65,7 @@ def ssim(
     if compiled is None:
         compiled = cpu_float(img, ref)
     if compiled:
-        from core.evaluation.blur_compiled import blur_compiled
+        from core.evaluation.ssim_compiled import blur_compiled
 
         def blur(maps: Tensor) -> Tensor:
             return blur_compiled(maps, taps)

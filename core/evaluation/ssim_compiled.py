@@ -8,7 +8,7 @@ columns, each pass a sum of shifted rows (loops numba vectorises), maps split ov
 the kernel threads.
 
 With zero padding and symmetric taps the blur is its own adjoint, so the backward
-is the same blur of the incoming gradient. ``tests/test_ssim.py`` holds the values
+is the same blur of the incoming gradient. ``tests/test_ssim_compiled.py`` holds the values
 and gradients to the ``conv2d`` path and to the 2D-window reference.
 """
 
