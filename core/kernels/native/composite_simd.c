@@ -6,7 +6,8 @@
  *
  *   front to back over each tile's depth-sorted list, alpha = min(0.99, o exp(power)),
  *   skipped when power > 0 or alpha < 1/255 (NaN included), a pixel stops before T
- *   would fall below 1e-4; the backward walks back to front, 3DGS-style.
+ *   would fall below 1e-4; the backward walks back to front, 3DGS-style, with its
+ *   running state in float32 (numba's is float64; gradients agree to float32 rounding).
  *
  * Why it is fast: a tile row is one or a few vectors. Per list entry and row, every
  * lane is evaluated branch-free; lanes outside the Gaussian's ellipse get
@@ -145,6 +146,13 @@ static inline float exp_floor(float o, float a_min) {
     float f = logf(a_min / o) - 1.0f;
     f = f < -30.0f ? f : -30.0f;
     return f >= -86.0f ? f : NAN;
+}
+
+/* The lanes of x summed in float64, in lane order. */
+static inline double hsum(vf x) {
+    double s = 0.0;
+    for (int l = 0; l < VW; l++) s += (double)x[l];
+    return s;
 }
 
 /* Pixel boxes [x0, x1) x [y0, y1) outside which Gaussians [lo, hi) cannot reach
@@ -310,39 +318,18 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
 
 /* ---- backward ------------------------------------------------------------------ */
 
-/* The backward keeps its running state in float64, as the numba kernel: a tile row
- * is NVD vectors of VDW doubles, each half of a float vector. */
-#define VDW (VW / 2)
-#define NVD (TS / VDW)
-typedef double vd __attribute__((vector_size(VDW * 8)));
-typedef int64_t vl __attribute__((vector_size(VDW * 8)));
-
-static inline vd seld(vl m, vd a, vd b) { return (vd)((m & (vl)a) | (~m & (vl)b)); }
-
-static inline vd half_d(vf x, int h) {
-    vd r;
-    for (int l = 0; l < VDW; l++) r[l] = (double)x[h * VDW + l];
-    return r;
-}
-
-static inline vl half_mask(vi m, int h) {
-    vl r;
-    for (int l = 0; l < VDW; l++) r[l] = (int64_t)m[h * VDW + l];
-    return r;
-}
-
-static inline double hsum(vd x) {
-    double s = 0.0;
-    for (int l = 0; l < VDW; l++) s += x[l];
-    return s;
-}
-
 /* Gradients of tiles w, w + n_workers, ..., back to front, added into
  * gbuf[w, g, :] = (d means2d (2), d conic (3), d opacity, d features (C)), float64,
  * gbuf of shape (n_workers, N, 6 + C). final_T, last: the forward's outputs;
  * grad_feat (H, W, C), grad_alpha (H, W): the incoming gradients. With T_before =
  * T_after / (1 - alpha) and R the suffix sum of alpha_k T_k (g . f_k):
  *   dL/dalpha = T_before (g . f) - R / (1 - alpha) + g_alpha T_final / (1 - alpha).
+ *
+ * The running state (T, R) and each Gaussian's sums over one tile are float32 vectors,
+ * a whole tile row per vector, as 3DGS's CUDA backward keeps them; each tile's sums
+ * are added into gbuf in float64. (The numba kernel keeps float64 state; the two agree
+ * to float32 rounding, tests/test_raster_simd.py.) Float64 state, half a row per
+ * vector, cost twice the vector work in the per-channel loop.
  * Returns 0, or -1 when out of memory. */
 int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
                             const float *conics, const float *opac, const float *feats,
@@ -352,20 +339,19 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
                             const float *final_T, const int32_t *last, const float *grad_feat,
                             const float *grad_alpha, int64_t n_gauss, double *gbuf) {
     const float a_min = consts[2], a_max = consts[3];
-    const vd zd = (vd){0};
+    const vf zero = (vf){0};
+    const vi none = (vi){0};
     vf lane[NV];
     for (int v = 0; v < NV; v++)
         for (int l = 0; l < VW; l++) lane[v][l] = (float)(v * VW + l) + 0.5f;
-    vd Tc[TS][NVD], R[TS][NVD], gaT[TS][NVD], lastd[TS][NVD];
+    vf Tc[TS][NV], R[TS][NV], gaT[TS][NV];
+    vi lastv[TS][NV];
     int32_t row_last[TS];
-    vd *Gt = NULL, *acc_f = NULL; /* dL/dfeatures per pixel [row][ch][NVD]; per channel */
-    double *f64 = NULL;
+    vf *Gt = NULL, *acc_f = NULL; /* dL/dfeatures per pixel [row][ch][NV]; per channel */
     const size_t nc = n_ch > 0 ? (size_t)n_ch : 1;
-    if (posix_memalign((void **)&Gt, 64, sizeof(vd) * TS * NVD * nc) != 0 ||
-        posix_memalign((void **)&acc_f, 64, sizeof(vd) * nc) != 0 ||
-        (f64 = malloc(sizeof(double) * nc)) == NULL) {
+    if (posix_memalign((void **)&Gt, 64, sizeof(vf) * TS * NV * nc) != 0 ||
+        posix_memalign((void **)&acc_f, 64, sizeof(vf) * nc) != 0) {
         free(Gt);
-        free(acc_f);
         return -1;
     }
     double *gb = gbuf + (size_t)w * (size_t)n_gauss * (size_t)(6 + n_ch);
@@ -379,23 +365,23 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
         for (int r = 0; r < TS; r++) {
             row_last[r] = 0;
             for (int l = 0; l < TS; l++) {
-                const int j = l / VDW, k = l % VDW;
+                const int v = l / VW, k = l % VW;
                 if (r < ny && l < nx) {
                     const int64_t p = (y0 + r) * width + (x0 + l);
-                    const double Tf = (double)final_T[p];
-                    Tc[r][j][k] = Tf;
-                    gaT[r][j][k] = (double)grad_alpha[p] * Tf;
-                    lastd[r][j][k] = (double)last[p];
+                    const float Tf = final_T[p];
+                    Tc[r][v][k] = Tf;
+                    gaT[r][v][k] = grad_alpha[p] * Tf;
+                    lastv[r][v][k] = last[p];
                     for (int64_t ch = 0; ch < n_ch; ch++)
-                        Gt[((int64_t)r * n_ch + ch) * NVD + j][k] = (double)grad_feat[p * n_ch + ch];
+                        Gt[((int64_t)r * n_ch + ch) * NV + v][k] = grad_feat[p * n_ch + ch];
                     if (last[p] > row_last[r]) row_last[r] = last[p];
                 } else { /* outside the image: never contributes */
-                    Tc[r][j][k] = 1.0;
-                    gaT[r][j][k] = 0.0;
-                    lastd[r][j][k] = 0.0;
-                    for (int64_t ch = 0; ch < n_ch; ch++) Gt[((int64_t)r * n_ch + ch) * NVD + j][k] = 0.0;
+                    Tc[r][v][k] = 1.0f;
+                    gaT[r][v][k] = 0.0f;
+                    lastv[r][v][k] = 0;
+                    for (int64_t ch = 0; ch < n_ch; ch++) Gt[((int64_t)r * n_ch + ch) * NV + v][k] = 0.0f;
                 }
-                R[r][j][k] = 0.0;
+                R[r][v][k] = 0.0f;
             }
             if (row_last[r] > n_last) n_last = row_last[r];
         }
@@ -410,13 +396,10 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
             const float mx = means2d[2 * g], my = means2d[2 * g + 1];
             const float a = conics[3 * g], b = conics[3 * g + 1], c = conics[3 * g + 2];
             const float o = opac[g], p_floor = floors[g];
-            const double ad = a, bd = b, cd = c;
-            for (int64_t ch = 0; ch < n_ch; ch++) {
-                f64[ch] = (double)feats[g * n_ch + ch];
-                acc_f[ch] = zd;
-            }
-            vd s_mx = zd, s_my = zd, s_a = zd, s_b = zd, s_c = zd, s_o = zd;
-            const vd kd = zd + (double)kk;
+            const float *f_g = feats + g * n_ch;
+            for (int64_t ch = 0; ch < n_ch; ch++) acc_f[ch] = zero;
+            vf s_mx = zero, s_my = zero, s_a = zero, s_b = zero, s_c = zero, s_o = zero;
+            const vi kv = none + kk;
             vf dx[NV], adx[NV], bdx[NV];
             lane_terms(lane, x0, mx, a, b, dx, adx, bdx);
             int touched = 0;
@@ -424,42 +407,36 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
                 const int r = __builtin_ctz(rows);
                 const float dy = ((float)(y0 + r) + 0.5f) - my;
                 const float cdy = c * dy * dy;
-                const double dyd = dy;
                 for (int v = 0; v < NV; v++) {
                     const vf power = -0.5f * (adx[v] + cdy) - bdx[v] * dy;
                     vf G;
                     vi clamped;
                     const vf alpha = row_alpha(power, o, p_floor, a_min, a_max, &G, &clamped);
-                    const vi ok = alpha >= a_min;
-                    for (int h = 0; h < 2; h++) {
-                        const int j = v * 2 + h;
-                        const vl m = half_mask(ok, h) & (kd < lastd[r][j]);
-                        if (!any_lane((vi)m)) continue;
-                        touched = 1;
-                        const vd al = seld(m, half_d(alpha, h), zd);
-                        const vd one_m = 1.0 - al;
-                        const vd Tb = Tc[r][j] / one_m;
-                        const vd wgt = al * Tb;
-                        vd gf = zd;
-                        const vd *Gr = Gt + (int64_t)r * n_ch * NVD + j;
-                        for (int64_t ch = 0; ch < n_ch; ch++) {
-                            const vd gc = Gr[ch * NVD];
-                            gf += gc * f64[ch];
-                            acc_f[ch] += wgt * gc;
-                        }
-                        const vd d_alpha = Tb * gf + (gaT[r][j] - R[r][j]) / one_m;
-                        R[r][j] += wgt * gf;
-                        Tc[r][j] = Tb;
-                        const vl mc = m & ~half_mask(clamped, h);
-                        const vd d_pow = seld(mc, al * d_alpha, zd);
-                        const vd dxd = half_d(dx[v], h);
-                        s_mx += (ad * dxd + bd * dyd) * d_pow;
-                        s_my += (cd * dyd + bd * dxd) * d_pow;
-                        s_a -= 0.5 * dxd * dxd * d_pow;
-                        s_b -= dxd * dyd * d_pow;
-                        s_c -= 0.5 * dyd * dyd * d_pow;
-                        s_o += seld(mc, half_d(G, h) * d_alpha, zd);
+                    const vi m = (alpha >= a_min) & (kv < lastv[r][v]);
+                    if (!any_lane(m)) continue;
+                    touched = 1;
+                    const vf al = sel(m, alpha, zero);
+                    const vf one_m = 1.0f - al;
+                    const vf Tb = Tc[r][v] / one_m;
+                    const vf wgt = al * Tb;
+                    vf gf = zero;
+                    const vf *Gr = Gt + (int64_t)r * n_ch * NV + v;
+                    for (int64_t ch = 0; ch < n_ch; ch++) {
+                        const vf gc = Gr[ch * NV];
+                        gf += gc * f_g[ch];
+                        acc_f[ch] += wgt * gc;
                     }
+                    const vf d_alpha = Tb * gf + (gaT[r][v] - R[r][v]) / one_m;
+                    R[r][v] += wgt * gf;
+                    Tc[r][v] = Tb;
+                    const vi mc = m & ~clamped;
+                    const vf d_pow = sel(mc, al * d_alpha, zero);
+                    s_mx += (a * dx[v] + b * dy) * d_pow;
+                    s_my += (c * dy + b * dx[v]) * d_pow;
+                    s_a -= 0.5f * dx[v] * dx[v] * d_pow;
+                    s_b -= dx[v] * dy * d_pow;
+                    s_c -= 0.5f * dy * dy * d_pow;
+                    s_o += sel(mc, G * d_alpha, zero);
                 }
             }
             if (touched) {
@@ -476,6 +453,5 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
     }
     free(Gt);
     free(acc_f);
-    free(f64);
     return 0;
 }

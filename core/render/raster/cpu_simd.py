@@ -6,8 +6,9 @@ The numba kernels of ``core.render.raster.cpu`` evaluate one pixel at a time; th
 C kernel evaluates a 16-pixel tile row per vector (see that file). It is built with
 the system C compiler at first use (``core.kernels.native_build``); without one, everything
 keeps the numba kernels. Every decision (which pixels a Gaussian reaches, where a
-pixel stops) is numba's; values differ by the polynomial exp's 2 float32 ulps —
-tested against numba and the reference.
+pixel stops) is numba's; values differ by the polynomial exp's 2 float32 ulps, and
+gradients by the backward's float32 running state (numba keeps float64; 3DGS's CUDA
+kernel float32) — tested against numba and the reference.
 
 It takes float32 composites on 16-px tiles (:func:`supports`): gradient-free frames
 (viewer, evaluation renders) and training steps, where ``CpuComposite`` pairs its
