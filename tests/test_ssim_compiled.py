@@ -92,3 +92,32 @@ def test_blur_rejects_what_its_backward_cannot_reuse() -> None:
         blur_compiled(maps, torch.tensor([0.5, 0.5]))
     with pytest.raises(ValueError, match=r"\(K, H, W\)"):
         blur_compiled(maps[0], torch.tensor([0.25, 0.5, 0.25]))
+
+
+def test_fused_ssim_without_gradients_gives_the_same_value() -> None:
+    """Evaluations (no gradient) skip the partial maps and read the same SSIM; constant
+    images (zero variance, where S's numerator and denominator both shrink) are finite."""
+    img, ref = _pair(30, 21, 3, torch.float32, 13)
+    with torch.no_grad():
+        plain = ssim(img, ref, compiled=False)
+        fused = ssim(img, ref)
+    torch.testing.assert_close(fused, plain, rtol=0, atol=2e-6)
+    flat = torch.full((12, 12, 3), 0.4)
+    v, g = _value_and_grad(flat, torch.full((12, 12, 3), 0.6), compiled=True)
+    v_t, g_t = _value_and_grad(flat, torch.full((12, 12, 3), 0.6), compiled=False)
+    assert torch.isfinite(g).all()
+    torch.testing.assert_close(v, v_t, rtol=0, atol=1e-5)  # E[x²] − μ² cancels in float32
+    torch.testing.assert_close(g, g_t, rtol=1e-4, atol=1e-7)
+
+
+def test_fused_ssim_rejects_what_it_cannot_differentiate() -> None:
+    from core.evaluation.ssim_compiled import ssim_compiled
+
+    img, ref = _pair(8, 8, 3, torch.float32, 1)
+    taps = _gaussian_taps(11, 1.5, img)
+    with pytest.raises(ValueError, match="same"):
+        ssim_compiled(img, ref[:, :4], taps, 1e-4, 9e-4)
+    with pytest.raises(ValueError, match="ref requires grad"):
+        ssim_compiled(img, ref.clone().requires_grad_(True), taps, 1e-4, 9e-4)
+    with pytest.raises(ValueError, match="float64"):
+        ssim_compiled(img, ref.double(), taps, 1e-4, 9e-4)

@@ -53,10 +53,11 @@ def ssim(
     """Mean SSIM of two (H, W, C) images, 3DGS's variant: 11×11 Gaussian, zero padding.
 
     The local moments are blurred separably, the rendered image's three in one call and
-    the reference's two in another (no gradient flows there). ``compiled`` (None: on
-    CPU float tensors): the numba blur of core.evaluation.ssim_compiled, else grouped
-    convolutions (the torch path, the GPU's); both 1D passes give the 2D window's
-    value up to rounding (``python -m bench.ssim_loss`` times all three).
+    the reference's two in another. ``compiled`` (None: on CPU float tensors): the
+    compiled passes of core.evaluation.ssim_compiled (the whole term when only ``img``
+    takes a gradient, else its blur), otherwise grouped convolutions (the torch path,
+    the GPU's); all give the 2D window's value up to rounding (``python -m
+    bench.ssim_loss`` times them).
     """
     x = img.permute(2, 0, 1)
     y = ref.permute(2, 0, 1)
@@ -64,6 +65,10 @@ def ssim(
     taps = _gaussian_taps(window, sigma, x)
     if compiled is None:
         compiled = cpu_float(img, ref)
+    if compiled and not ref.requires_grad and img.dtype == ref.dtype:
+        from core.evaluation.ssim_compiled import ssim_compiled
+
+        return ssim_compiled(img, ref, taps, _SSIM_C1, _SSIM_C2)
     if compiled:
         from core.evaluation.ssim_compiled import blur_compiled
 
