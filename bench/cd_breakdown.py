@@ -217,6 +217,10 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--plot", type=Path, help="PNG: where the mesh misses the truth (three views)")
     ap.add_argument("--beyond", type=float, default=0.015, help="what --plot calls missed")
     args = ap.parse_args(argv)
+    if not args.beyond > 0:
+        ap.error(f"--beyond must be a positive distance, got {args.beyond}")
+    if args.plot is not None and not args.plot.parent.is_dir():
+        ap.error(f"--plot: folder {args.plot.parent} does not exist")
     import trimesh
 
     gt = load_gt_points(args.scene)

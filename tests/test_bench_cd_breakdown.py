@@ -117,3 +117,18 @@ def test_the_plot_draws_the_groove_as_what_the_mesh_misses(tmp_path) -> None:
     assert png[:8] == b"\x89PNG\r\n\x1a\n" and len(png) > 10_000
     true = plot_missed(gt["points"], gt["points"], tmp_path / "none.png", beyond=0.05)
     assert true["missed_share"] == 0.0
+
+
+def test_the_plot_options_are_checked_before_any_work(tmp_path, capsys) -> None:
+    import pytest
+
+    from bench.cd_breakdown import main
+
+    for argv, says in (
+        (["m.ply", "--scene", str(tmp_path), "--beyond", "0"], "--beyond must be a positive"),
+        (["m.ply", "--scene", str(tmp_path), "--plot", str(tmp_path / "no" / "p.png")],
+         "does not exist"),
+    ):  # fmt: skip
+        with pytest.raises(SystemExit):
+            main(argv)
+        assert says in capsys.readouterr().err
