@@ -37,9 +37,11 @@ from core.training.run import train_scene
 
 def float64_paths() -> None:
     """A float64 G-buffer pass with its backward on the compiled CPU backend, the cube
-    map lookup, the multi-view loss and SSIM's blur: the float64 signatures the tests use."""
+    map lookups (sharp and mip-mapped), the multi-view loss and SSIM's blur: the float64
+    signatures the tests use."""
     from core.evaluation.ssim import ssim
     from core.render.envmap import sample_cube
+    from core.render.envmap_mips import sample_cube_lod
     from core.render.gbuffer import render_gbuffer_tensors
     from core.scene.cameras import Camera, Intrinsics
     from core.training.losses import multi_view_loss
@@ -64,6 +66,8 @@ def float64_paths() -> None:
     tex = torch.rand(6, 4, 4, 3, generator=gen, dtype=f64).requires_grad_(True)
     dirs = torch.randn(32, 3, generator=gen, dtype=f64).requires_grad_(True)
     sample_cube(tex, dirs).sum().backward()
+    lod = torch.rand(32, generator=gen, dtype=f64).requires_grad_(True)
+    sample_cube_lod(tex, dirs, lod).sum().backward()
     nb = Camera(cam.intrinsics, torch.tensor(
         [[1, 0, 0, -0.2], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=f64))  # fmt: skip
     d_ref = torch.full((size, size), 2.0, dtype=f64, requires_grad=True)

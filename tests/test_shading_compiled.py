@@ -204,10 +204,13 @@ def test_without_roughness_the_kernel_is_the_sharp_one(monkeypatch):
     with torch.no_grad():
         want = deferred_shade(mirror, env, bg)
 
-        def no_chain(*args, **kwargs):
-            raise AssertionError("a G-buffer without roughness built the mip chain")
+        sharp_only = shading_compiled.packed_cube_levels
 
-        monkeypatch.setattr(shading_compiled, "cube_mip_chain", no_chain)
+        def no_chain(texels, mips):
+            assert not mips, "a G-buffer without roughness built the mip chain"
+            return sharp_only(texels, mips)
+
+        monkeypatch.setattr(shading_compiled, "packed_cube_levels", no_chain)
         got = deferred_shade(dataclasses.replace(gb, roughness=None), env, bg)
     for name in ("final", "specular", "reflected_dir"):
         assert torch.equal(getattr(got, name), getattr(want, name)), name

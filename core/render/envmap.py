@@ -166,7 +166,8 @@ def sample_cube(texels: Tensor, dirs: Tensor, *, compiled: bool | None = None) -
     zero length), returns 0 with zero gradient, so a bad pixel can neither produce nor
     propagate NaN into the texel gradients. Differentiable in texels and directions
     (the direction gradient runs through the face projection sc/ma, tc/ma).
-    ``compiled``: the per-pixel numba lookup and backward of
+    ``compiled``: the padding and the per-pixel lookup, each with its backward, as the
+    numba loops of ``core.render.envmap_pack_compiled`` and
     ``core.render.envmap_lookup_compiled`` with one level (None: for CPU tensors), False:
     the torch ops below, the reference.
     """
@@ -179,11 +180,12 @@ def sample_cube(texels: Tensor, dirs: Tensor, *, compiled: bool | None = None) -
         compiled = cpu_float(texels, dirs)
     if compiled:
         from core.render.envmap_lookup_compiled import sample_packed_lod
+        from core.render.envmap_pack_compiled import packed_cube_levels
 
         d = dirs.reshape(-1, 3).to(texels.dtype)
         level0 = torch.zeros(d.shape[0], dtype=texels.dtype)
-        padded = pad_cube(texels).reshape(-1, ch)
-        out = sample_packed_lod(padded, [0], [p], d, level0, _min_major(texels.dtype))
+        padded, offsets, sizes = packed_cube_levels(texels, mips=False)
+        out = sample_packed_lod(padded, offsets, sizes, d, level0, _min_major(texels.dtype))
         return out.reshape(*lead, ch)
     valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
 

@@ -7,8 +7,8 @@ and backward of a 60 ms multi-view step at 128² (docs/bench/step_breakdown.md),
 largest stage outside the rasteriser. Here a numba loop reads both levels per pixel
 and a second one writes the gradients by hand: into the packed padded levels (each
 worker into its own buffer, summed after), the reflected directions (through the face
-projection u = sc/ma, v = tc/ma) and the LOD. The mip chain and its padding stay in
-torch (a few small ops on the map), so the texels' gradient still flows through them.
+projection u = sc/ma, v = tc/ma) and the LOD. The mip chain and its padding are built
+(and their gradient taken back to the texels) by ``envmap_pack_compiled``.
 
 Same formulas and guards as the torch path: an invalid direction (non-finite, or its
 largest component below ``min_major``) returns 0 and passes no gradient; the LOD is

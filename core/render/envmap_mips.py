@@ -94,28 +94,29 @@ def sample_cube_lod(
     ``lod`` (...): linear between the two nearest levels of :func:`cube_mip_chain`, each
     read with seamless bilinear taps. Degenerate directions return 0 with zero gradient,
     as in ``sample_cube``. Differentiable in texels, directions and ``lod``.
-    ``compiled``: the per-pixel lookup and its backward as numba loops
-    (core.render.envmap_lookup_compiled; None: for CPU tensors), False: the torch ops
-    below, the reference."""
+    ``compiled``: the chain and the per-pixel lookup, each with its backward, as numba
+    loops (core.render.envmap_pack_compiled, core.render.envmap_lookup_compiled; None:
+    for CPU tensors), False: the torch ops below, the reference."""
     if dirs.shape[-1] != 3 or lod.shape != dirs.shape[:-1]:
         raise ValueError(
             f"directions must be (..., 3) and lod (...), got {tuple(dirs.shape)} and "
             f"{tuple(lod.shape)}"
         )
-    levels = cube_mip_chain(texels)
     ch = texels.shape[-1]
     lead = dirs.shape[:-1]
     if compiled is None:
         compiled = cpu_float(texels, dirs, lod)
     if compiled:
         from core.render.envmap_lookup_compiled import sample_packed_lod
+        from core.render.envmap_pack_compiled import packed_cube_levels
 
-        flat, offsets, sizes = _packed_levels(levels)
+        flat, offsets, sizes = packed_cube_levels(texels, mips=True)
         out = sample_packed_lod(
             flat, offsets, sizes, dirs.reshape(-1, 3).to(texels.dtype),
             lod.reshape(-1).to(texels.dtype), _min_major(texels.dtype),
         )  # fmt: skip
         return out.reshape(*lead, ch)
+    levels = cube_mip_chain(texels)
     valid, face, u, v = guarded_face_uv(dirs, texels.dtype)
     lod = lod.reshape(-1).to(texels.dtype).clamp(0.0, float(len(levels) - 1))
     # a NaN LOD reads level 0 with a NaN weight: NaN out (the trainer's guard skips the

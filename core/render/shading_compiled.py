@@ -31,8 +31,9 @@ from numba import njit
 from torch import Tensor
 
 from core.kernels.pool import run_ranges
-from core.render.envmap import EnvMap, pad_cube
-from core.render.envmap_mips import _packed_levels, cube_mip_chain, lod_scale
+from core.render.envmap import EnvMap
+from core.render.envmap_mips import lod_scale
+from core.render.envmap_pack_compiled import packed_cube_levels
 
 __all__ = ["can_shade_compiled", "shade_compiled"]
 
@@ -199,11 +200,7 @@ def shade_compiled(
 
     with torch.no_grad():
         texels = envmap.texels().detach().to(dtype)
-        if roughness is None:
-            packed = pad_cube(texels).reshape(-1, texels.shape[-1])
-            offsets, sizes = [0], [texels.shape[1] + 2]
-        else:
-            packed, offsets, sizes = _packed_levels(cube_mip_chain(texels))
+        packed, offsets, sizes = packed_cube_levels(texels, mips=roughness is not None)
     i = camera.intrinsics
     intr = np.array([i.fx, i.fy, i.cx, i.cy], np.float64)
     rot = camera.R.detach().to(torch.float64).contiguous().numpy()
