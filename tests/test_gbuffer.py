@@ -216,3 +216,26 @@ def test_held_normal_depth_moves_the_plane_and_never_turns_it():
     # the plain depth's gradient does turn the normal
     (g_plain,) = torch.autograd.grad(gb.depth[v].sum(), (normal,))
     assert g_plain.abs().max() > 1e-3
+
+
+def test_the_channel_split_passes_back_only_the_fields_a_loss_reads() -> None:
+    """split_channels hands each field's gradient back as one concatenation, zeros
+    where a field was not read: the same gradient slicing gives."""
+    from core.render.gbuffer import channel_groups, split_channels
+    from core.render.gbuffer_compiled import FeatureLayout
+
+    for lay in (FeatureLayout(), FeatureLayout(True), FeatureLayout(False, True, True)):
+        feats = torch.randn(5, 4, lay.channels, dtype=torch.float64, requires_grad=True)
+        fields = split_channels(feats, lay)
+        assert list(fields) == [name for name, _ in channel_groups(lay)]
+        loss = fields["normal"].square().sum() + 3.0 * fields["z_blend"].sum()
+        (got,) = torch.autograd.grad(loss, feats)
+        want = torch.zeros_like(feats)
+        want[..., lay.normal : lay.normal + 3] = (
+            2.0 * feats.detach()[..., lay.normal : lay.normal + 3]
+        )
+        want[..., lay.z] = 3.0
+        assert torch.equal(got, want)
+        assert torch.autograd.gradcheck(
+            lambda f, lay=lay: tuple(split_channels(f, lay).values()), (feats,)
+        )
