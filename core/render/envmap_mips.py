@@ -32,15 +32,8 @@ import torch
 from torch import Tensor
 
 from core.kernels.dispatch import cpu_float
+from core.render.cube_faces import mip_sizes
 from core.render.envmap import _min_major, _PaddedBilinear, guarded_face_uv, pad_cube
-
-
-def mip_sizes(resolution: int) -> list[int]:
-    """Face size of each level: halved while even, down to 1 (an odd size ends it)."""
-    sizes = [int(resolution)]
-    while sizes[-1] > 1 and sizes[-1] % 2 == 0:
-        sizes.append(sizes[-1] // 2)
-    return sizes
 
 
 def cube_mip_chain(texels: Tensor) -> list[Tensor]:

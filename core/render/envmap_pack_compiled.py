@@ -7,7 +7,7 @@ torch that is ~35 small ops (means, gathers, a corner ``index_copy``, a ``cat``)
 many autograd nodes on a map of a few thousand texels: 2.7 ms forward and backward on
 two cores at R = 32, all of it op overhead (the data is 70 kB). Here it is one loop
 forward and one backward over a gather table built once per face size from
-``envmap._pad_plan_cpu``: each packed row is one texel of one unpadded level, or (a
+``cube_faces._pad_plan_cpu``: each packed row is one texel of one unpadded level, or (a
 corner) the mean of three. The backward scatters the packed gradient onto the unpadded
 levels, then pushes each level's gradient a quarter to each of its four finer texels,
 coarsest first, down to level 0. The torch ops stay the reference
@@ -24,6 +24,8 @@ from numba import njit
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from core.render.cube_faces import _pad_plan_cpu, mip_sizes
+
 __all__ = ["packed_cube_levels"]
 
 
@@ -32,9 +34,6 @@ def _gather_table(resolution: int, mips: bool) -> tuple[np.ndarray, ...]:
     """(sources (N, 3), counts (N,), level face sizes, unpadded level offsets, packed
     offsets, padded sizes) of the packed buffer of a map of face size ``resolution``:
     sources index the concatenated unpadded levels (6·R_k² rows each)."""
-    from core.render.envmap import _pad_plan_cpu
-    from core.render.envmap_mips import mip_sizes
-
     sizes = mip_sizes(resolution) if mips else [int(resolution)]
     srcs, counts, lvl_off, pack_off, padded = [], [], [], [], []
     n_lvl = n_pack = 0
