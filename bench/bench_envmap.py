@@ -5,7 +5,9 @@
 Sampling: a 6×128×128×3 map looked up at 128² and 512² random directions, forward
 only (no autograd) and forward + backward (gradients for texels and directions).
 Shading: ``deferred_shade`` of a mirror-sphere G-buffer at 256² and 800², same two
-modes. Median of ``--repeat`` runs after a warm-up; torch's default thread count.
+modes. The padded mip chain every training step rebuilds (R = 32 and 128), forward +
+backward, torch ops against the compiled pass (``envmap_pack_compiled``; CPU only).
+Median of ``--repeat`` runs after a warm-up; torch's default thread count.
 """
 
 from __future__ import annotations
@@ -44,6 +46,28 @@ def sphere_gbuffer(size: int, device: str) -> GBuffer:
         alpha=alpha,
         camera=cam,
     )
+
+
+def chain_rows(repeat: int) -> list[tuple[str, str, float, str]]:
+    """The packed, padded mip chain forward + backward: torch ops, then compiled."""
+    from core.render.envmap_mips import _packed_levels, cube_mip_chain
+    from core.render.envmap_pack_compiled import packed_cube_levels
+
+    rows = []
+    for r in (32, 128):
+        texels = torch.rand(6, r, r, 3, requires_grad=True)
+
+        def torch_ops(texels=texels):
+            _packed_levels(cube_mip_chain(texels))[0].sum().backward()
+
+        def compiled(texels=texels):
+            packed_cube_levels(texels, mips=True)[0].sum().backward()
+
+        t_ref = median_time(torch_ops, warmup=3, repeat=repeat)
+        t_new = median_time(compiled, warmup=3, repeat=repeat)
+        rows.append((f"mip chain R={r}", "fwd+bwd, torch ops", t_ref * 1e3, ""))
+        rows.append((f"mip chain R={r}", "fwd+bwd, compiled", t_new * 1e3, f"{t_ref / t_new:.2f}×"))
+    return rows
 
 
 def main() -> None:
@@ -95,6 +119,9 @@ def main() -> None:
         for mode, fn in (("forward", shade), ("forward+backward", shade_bwd)):
             t = median_time(fn, warmup=2, repeat=args.repeat, sync=sync)
             rows.append((f"deferred_shade {size}×{size}", mode, t * 1e3, f"{1 / t:.1f} frames/s"))
+
+    if not dev.startswith("cuda"):
+        rows += chain_rows(args.repeat)
 
     print(f"Env map 6×128×128×3 on {dev}: {machine_line()}\n")
     print("| case | mode | median ms | throughput |")

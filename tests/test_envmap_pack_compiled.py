@@ -8,7 +8,7 @@ import torch
 
 from core.render.envmap import pad_cube, sample_cube
 from core.render.envmap_mips import _packed_levels, cube_mip_chain, sample_cube_lod
-from core.render.envmap_pack_compiled import packed_cube_levels
+from core.render.envmap_pack_compiled import PARALLEL_ROWS, packed_cube_levels
 
 
 def _reference(texels: torch.Tensor, mips: bool) -> tuple[torch.Tensor, list[int], list[int]]:
@@ -19,7 +19,7 @@ def _reference(texels: torch.Tensor, mips: bool) -> tuple[torch.Tensor, list[int
 
 
 @pytest.mark.parametrize("mips", [True, False])
-@pytest.mark.parametrize("resolution", [1, 2, 6, 16, 32])
+@pytest.mark.parametrize("resolution", [1, 2, 6, 16, 32, 64])  # 64: the threaded gather
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_values_layout_and_gradients_match_the_torch_ops(resolution, mips, dtype) -> None:
     gen = torch.Generator().manual_seed(resolution)
@@ -34,6 +34,10 @@ def test_values_layout_and_gradients_match_the_torch_ops(resolution, mips, dtype
     (g_ref,) = torch.autograd.grad((ref * weights).sum(), texels)
     (g_got,) = torch.autograd.grad((got * weights).sum(), texels)
     torch.testing.assert_close(g_got, g_ref, rtol=tol * 4, atol=tol * 4)
+
+
+def test_the_largest_case_above_is_split_over_threads() -> None:
+    assert 6 * (64 + 2) ** 2 >= PARALLEL_ROWS > 6 * (32 + 2) ** 2
 
 
 def test_gradcheck_through_a_chain_that_ends_on_an_odd_size() -> None:

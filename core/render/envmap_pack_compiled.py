@@ -5,13 +5,14 @@ Every training step rebuilds it from the learned map: box-average each face down
 chain, give every level its seamless one-texel border, pack them into one buffer. In
 torch that is ~35 small ops (means, gathers, a corner ``index_copy``, a ``cat``) and as
 many autograd nodes on a map of a few thousand texels: 2.7 ms forward and backward on
-two cores at R = 32, all of it op overhead (the data is 70 kB). Here it is one loop
-forward and one backward over a gather table built once per face size from
-``cube_faces._pad_plan_cpu``: each packed row is one texel of one unpadded level, or (a
-corner) the mean of three. The backward scatters the packed gradient onto the unpadded
-levels, then pushes each level's gradient a quarter to each of its four finer texels,
-coarsest first, down to level 0. The torch ops stay the reference
-(``tests/test_envmap_pack_compiled.py``) and the GPU's path.
+two cores at R = 32, all of it op overhead (the data is 70 kB). Here the forward builds
+the coarser levels in one loop and gathers the packed rows through a table built once
+per face size from ``cube_faces._pad_plan_cpu`` (each packed row one texel of one
+level, or a corner's mean of three; large maps split over the kernel threads). The
+backward scatters the packed gradient onto the levels, then pushes each level's
+gradient a quarter to each of its four finer texels, coarsest first, down to level 0.
+The torch ops stay the reference (``tests/test_envmap_pack_compiled.py``) and the GPU's
+path.
 """
 
 from __future__ import annotations
@@ -24,9 +25,12 @@ from numba import njit
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from core.kernels.pool import run_ranges
 from core.render.cube_faces import _pad_plan_cpu, mip_sizes
 
 __all__ = ["packed_cube_levels"]
+
+PARALLEL_ROWS = 16_384  # packed rows from which the gather is split over kernel threads
 
 
 @lru_cache(maxsize=16)
@@ -60,16 +64,16 @@ def _gather_table(resolution: int, mips: bool) -> tuple[np.ndarray, ...]:
 
 
 @njit(nogil=True, cache=True)
-def _forward(texels, sources, counts, sizes, lvl_off, levels, out):  # pragma: no cover
-    """levels: every unpadded level (level 0 a copy of ``texels``); out: the packed rows."""
+def _coarser_levels(texels, sizes, lvl_off, levels):  # pragma: no cover - numba
+    """levels: every level but the first (rows ``lvl_off[k] - lvl_off[1]``), each the
+    2×2 mean of the one before (level 0 is ``texels``)."""
     ch = texels.shape[1]
-    n0 = texels.shape[0]
-    for i in range(n0):
-        for c in range(ch):
-            levels[i, c] = texels[i, c]
+    base = lvl_off[1] if sizes.shape[0] > 1 else 0
     for k in range(1, sizes.shape[0]):
         r, rp = sizes[k], sizes[k - 1]
-        src, dst = lvl_off[k - 1], lvl_off[k]
+        dst = lvl_off[k] - base
+        prev = texels if k == 1 else levels
+        src = 0 if k == 1 else lvl_off[k - 1] - base
         for f in range(6):
             for y in range(r):
                 for x in range(r):
@@ -77,15 +81,32 @@ def _forward(texels, sources, counts, sizes, lvl_off, levels, out):  # pragma: n
                     o = dst + f * r * r + y * r + x
                     for c in range(ch):
                         levels[o, c] = (
-                            levels[a, c] + levels[a + 1, c]
-                            + levels[a + rp, c] + levels[a + rp + 1, c]
-                        ) * 0.25  # fmt: skip
-    for n in range(out.shape[0]):
+                            prev[a, c] + prev[a + 1, c] + prev[a + rp, c] + prev[a + rp + 1, c]
+                        ) * 0.25
+
+
+@njit(nogil=True, cache=True)
+def _gather_rows(lo, hi, texels, levels, sources, counts, out):  # pragma: no cover - numba
+    """Packed rows [lo, hi): a texel of a level (level 0 read from ``texels``), or the
+    mean of a corner's three."""
+    ch = texels.shape[1]
+    n0 = texels.shape[0]
+    for n in range(lo, hi):
         m = counts[n]
+        if m == 1:
+            s = sources[n, 0]
+            if s < n0:
+                for c in range(ch):
+                    out[n, c] = texels[s, c]
+            else:
+                for c in range(ch):
+                    out[n, c] = levels[s - n0, c]
+            continue
         for c in range(ch):
-            acc = levels[sources[n, 0], c]
-            for t in range(1, m):
-                acc += levels[sources[n, t], c]
+            acc = 0.0
+            for t in range(m):
+                s = sources[n, t]
+                acc += texels[s, c] if s < n0 else levels[s - n0, c]
             out[n, c] = acc / m
 
 
@@ -122,9 +143,16 @@ class _PackLevels(torch.autograd.Function):
         r, ch = texels.shape[1], texels.shape[-1]
         sources, counts, sizes, lvl_off, _, _ = _gather_table(r, mips)
         flat = texels.detach().contiguous().reshape(-1, ch).numpy()
-        levels = np.empty((int(lvl_off[-1] + 6 * sizes[-1] ** 2), ch), flat.dtype)
+        n_coarse = int(lvl_off[-1] + 6 * sizes[-1] ** 2) - flat.shape[0]
+        levels = np.empty((max(n_coarse, 1), ch), flat.dtype)
+        if n_coarse > 0:
+            _coarser_levels(flat, sizes, lvl_off, levels)
         out = np.empty((sources.shape[0], ch), flat.dtype)
-        _forward(flat, sources, counts, sizes, lvl_off, levels, out)
+        args = (flat, levels, sources, counts, out)
+        if sources.shape[0] < PARALLEL_ROWS:  # a thread hand-off costs more than the rows
+            _gather_rows(0, sources.shape[0], *args)
+        else:
+            run_ranges(_gather_rows, sources.shape[0], args)
         ctx.meta = (r, mips, texels.shape)
         return torch.from_numpy(out)
 
