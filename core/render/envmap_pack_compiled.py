@@ -63,6 +63,13 @@ def _gather_table(resolution: int, mips: bool) -> tuple[np.ndarray, ...]:
     )  # fmt: skip
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _texel_and_first_child(src, dst, r, rp, f, y, x):  # pragma: no cover - numba
+    """Row of texel (f, y, x) of a level of face size r starting at ``dst``, and of the
+    first of its four finer texels (+1, +rp, +rp+1 the others) in the level at ``src``."""
+    return dst + f * r * r + y * r + x, src + f * rp * rp + 2 * y * rp + 2 * x
+
+
 @njit(nogil=True, cache=True)
 def _coarser_levels(texels, sizes, lvl_off, levels):  # pragma: no cover - numba
     """levels: every level but the first (rows ``lvl_off[k] - lvl_off[1]``), each the
@@ -77,8 +84,7 @@ def _coarser_levels(texels, sizes, lvl_off, levels):  # pragma: no cover - numba
         for f in range(6):
             for y in range(r):
                 for x in range(r):
-                    a = src + f * rp * rp + 2 * y * rp + 2 * x
-                    o = dst + f * r * r + y * r + x
+                    o, a = _texel_and_first_child(src, dst, r, rp, f, y, x)
                     for c in range(ch):
                         levels[o, c] = (
                             prev[a, c] + prev[a + 1, c] + prev[a + rp, c] + prev[a + rp + 1, c]
@@ -127,8 +133,7 @@ def _backward(grad, sources, counts, sizes, lvl_off, g_levels):  # pragma: no co
         for f in range(6):
             for y in range(r):
                 for x in range(r):
-                    a = src + f * rp * rp + 2 * y * rp + 2 * x
-                    o = dst + f * r * r + y * r + x
+                    o, a = _texel_and_first_child(src, dst, r, rp, f, y, x)
                     for c in range(ch):
                         q = g_levels[o, c] * 0.25
                         g_levels[a, c] += q
