@@ -49,6 +49,20 @@ def test_float64_matches_values_and_gradients(res):
     assert float(new[2][3:6].abs().sum()) == 0.0
 
 
+def test_pixels_no_gradient_reaches_are_skipped_exactly():
+    """The backward skips pixels whose incoming gradient is zero (a training view's
+    uncovered pixels): the gradients still equal the torch path's, and a pixel that
+    does get one, even in one channel, is not skipped."""
+    texels, dirs, lod = inputs(16, 4000, torch.float64, seed=5)
+    grad_out = torch.randn(4000, 3, dtype=torch.float64)
+    grad_out[::2] = 0.0  # half the pixels uncovered
+    grad_out[1::4, 1:] = 0.0  # a quarter reached in one channel only
+    ref, new = both(texels, dirs, lod, grad_out)
+    for a, b, name in zip(ref, new, ("value", "texels", "dirs", "lod"), strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10, msg=name)
+    assert float(new[2][10::2].abs().sum()) == 0.0 and float(new[2][1::4].abs().sum()) > 0.0
+
+
 def test_float32_matches_and_leading_shape_is_kept():
     texels, dirs, lod = inputs(32, 128 * 128, torch.float32, seed=3)
     grad_out = torch.randn(128 * 128, 3)

@@ -148,6 +148,16 @@ def _backward_part(
         g_lod[i] = 0.0
         if not valid:
             continue
+        # a pixel no gradient reaches adds exact zeros everywhere (over a finite map):
+        # skipped, as are the uncovered pixels of a training view (specular = w_r ·
+        # radiance with w_r = 0 there); a NaN gradient is not zero and goes through
+        reached = False
+        for c in range(ch):
+            if grad[i, c] != 0.0:
+                reached = True
+                break
+        if not reached:
+            continue
         n_read = 2 if n_levels > 1 else 1
         du = 0.0
         dv = 0.0
