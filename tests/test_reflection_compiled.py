@@ -45,8 +45,11 @@ def _torch_path(normal, rough, alpha, cam):
     return refl, pixel_lod(rough, alpha, RES)
 
 
+@pytest.mark.parametrize("holes", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_directions_lod_and_gradients_match_torch(dtype):
+def test_directions_lod_and_gradients_match_torch(dtype, holes):
+    """``holes``: pixels no gradient reaches (skipped by the backward), and pixels only
+    the LOD's gradient reaches (not skipped)."""
     set_kernel_threads(2)
     cam, raw = _buffers(dtype)
     leaves = [raw.clone().requires_grad_(True) for _ in range(2)]
@@ -66,6 +69,9 @@ def test_directions_lod_and_gradients_match_torch(dtype):
     g = torch.Generator().manual_seed(5)
     g_refl = torch.randn(refl_c.shape, generator=g, dtype=dtype)
     g_lod = torch.randn(lod_c.shape, generator=g, dtype=dtype)
+    if holes:
+        g_refl[:, ::2] = 0.0
+        g_lod[:, ::4] = 0.0  # every other hole has the LOD's gradient only
     for refl, lod in outs:
         ((refl * g_refl).sum() + (lod * g_lod).sum()).backward()
     grad_c, grad_t = leaves[0].grad, leaves[1].grad

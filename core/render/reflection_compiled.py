@@ -117,13 +117,23 @@ def _backward_rows(
     g_normal, g_rough, g_alpha,
 ):  # fmt: skip  # pragma: no cover - numba
     width = normal.shape[1]
+    has_lod = rough.shape[0] != 0
     for j in range(lo, hi):
         for i in range(width):
+            g0, g1 = np.float64(g_refl[j, i, 0]), np.float64(g_refl[j, i, 1])
+            g2 = np.float64(g_refl[j, i, 2])
+            if g0 == 0.0 and g1 == 0.0 and g2 == 0.0 and (not has_lod or g_lod[j, i] == 0.0):
+                # nothing reaches this pixel (an uncovered one in training): zeros, exactly
+                g_normal[j, i, 0] = 0.0
+                g_normal[j, i, 1] = 0.0
+                g_normal[j, i, 2] = 0.0
+                if has_lod:
+                    g_rough[j, i] = 0.0
+                    g_alpha[j, i] = 0.0
+                continue
             (dx, dy, dz), (w0, w1, w2), (a0, a1, a2), ka, (b0, b1, b2), kb = _pixel(
                 j, i, normal, rot, intr
             )
-            g0, g1 = np.float64(g_refl[j, i, 0]), np.float64(g_refl[j, i, 1])
-            g2 = np.float64(g_refl[j, i, 2])
             rn = dx * b0 + dy * b1 + dz * b2
             gn = g0 * b0 + g1 * b1 + g2 * b2
             # refl = r − 2(r·b)b
@@ -138,7 +148,7 @@ def _backward_rows(
             g_normal[j, i, 0] = rot[0, 0] * h0 + rot[0, 1] * h1 + rot[0, 2] * h2
             g_normal[j, i, 1] = rot[1, 0] * h0 + rot[1, 1] * h1 + rot[1, 2] * h2
             g_normal[j, i, 2] = rot[2, 0] * h0 + rot[2, 1] * h1 + rot[2, 2] * h2
-            if rough.shape[0] == 0:
+            if not has_lod:
                 continue
             a = np.float64(alpha[j, i])
             b = np.float64(rough[j, i])
