@@ -211,11 +211,46 @@ def test_silhouette_depth_keeps_each_views_taps_and_gives_the_same_loss(
             )
             valid = torch.rand(v.height, v.width, generator=g) > 0.05 * step
             a, b = base.clone().requires_grad_(True), base.clone().requires_grad_(True)
-            got, want = loss(i, v.camera, a, valid), reference(i, v.camera, b, valid)
+            got = loss(i, v.camera, a, valid, compiled=False)  # the torch path, bit for bit
+            want = reference(i, v.camera, b, valid)
             got.backward()
             want.backward()
             assert got.item() == want.item() and torch.equal(a.grad, b.grad)
     other = loose_sphere.train[1].camera  # not view 0's camera: its own taps
     depth = torch.full((other.height, other.width), 2.5)
     valid = torch.ones(other.height, other.width, dtype=torch.bool)
-    assert loss(0, other, depth, valid).item() == reference(0, other, depth, valid).item()
+    got = loss(0, other, depth, valid, compiled=False).item()
+    assert got == reference(0, other, depth, valid).item()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_compiled_term_matches_the_torch_path(loose_sphere: Scene, dtype) -> None:
+    """core.training.silhouette_compiled against the torch ops: value and depth gradient
+    over views whose depth puts points in every case (counted either side, hidden,
+    floating, uncovered, exactly on the surface), and a view where none counts."""
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    gen = torch.Generator().manual_seed(2)
+    for i in (0, 3, 7):
+        v = loose_sphere.train[i]
+        _, z = v.camera.project(pts.points[loss.per_view[i]])
+        footprint = float(z.mean()) / v.camera.intrinsics.fx
+        noise = torch.randn(v.height, v.width, generator=gen, dtype=torch.float64)
+        base = float(z.median()) + 2.0 * footprint * noise  # gaps of a few footprints
+        valid = torch.rand(v.height, v.width, generator=gen) > 0.1
+        grads, values = [], []
+        for compiled in (False, True):
+            depth = base.to(dtype).clone().requires_grad_(True)
+            value = loss(i, v.camera, depth, valid, compiled=compiled)
+            value.backward()
+            values.append(value.detach())
+            grads.append(depth.grad)
+        tol = dict(rtol=1e-5, atol=1e-6) if dtype == torch.float32 else dict(rtol=1e-12, atol=0)
+        assert float(values[0]) > 0.0
+        torch.testing.assert_close(values[1], values[0], **tol)
+        torch.testing.assert_close(grads[1], grads[0], **tol)
+    far = torch.full((v.height, v.width), 0.5, dtype=dtype, requires_grad=True)  # hides all
+    value = loss(7, v.camera, far, valid, compiled=True)
+    value.backward()
+    assert float(value.detach()) == 0.0 and not far.grad.any()

@@ -33,6 +33,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from core.kernels.dispatch import cpu_float
 from core.render.depth_geometry import DEPTH_FACING_DEG, BilinearTaps, bilinear_taps
 from core.scene.cameras import Camera
 from core.scene.views import Scene
@@ -242,11 +243,24 @@ class SilhouetteDepth:
         self._cache[key] = (camera, taps, z)
         return taps, z
 
-    def __call__(self, view_index: int, camera: Camera, depth: Tensor, valid: Tensor) -> Tensor:
+    def __call__(
+        self, view_index: int, camera: Camera, depth: Tensor, valid: Tensor,
+        *, compiled: bool | None = None,
+    ) -> Tensor:  # fmt: skip
+        """``compiled``: one numba pass and its backward
+        (``core.training.silhouette_compiled``; None: for CPU float depth), False: the
+        torch ops below, the reference."""
         zero = depth.sum() * 0.0
         if self.per_view[view_index].numel() == 0:
             return zero
         taps, z = self._taps(view_index, camera, depth)
+        if compiled is None:
+            compiled = cpu_float(depth)
+        if compiled:
+            from core.training.silhouette_compiled import silhouette_gap_compiled
+
+            focal = float(camera.intrinsics.fx)
+            return silhouette_gap_compiled(depth, valid, taps, z, focal, OCCLUDED_PX, FLOATING_PX)
         d, inside = taps.sample(depth), taps.inside
         covered = taps.sample(valid.to(depth))
         gap = (d - z) / (z / camera.intrinsics.fx)  # in pixel footprints, + = behind

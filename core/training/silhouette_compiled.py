@@ -1,0 +1,110 @@
+"""The silhouette points' depth term (``silhouette.SilhouetteDepth``) as one compiled pass,
+with its backward, for training on the CPU.
+
+Per step and view the torch path reads the rendered depth and coverage at each point's
+four bilinear taps (eight gathers), forms the gap in pixel footprints, masks the points
+that are hidden, floating or uncovered, and averages |gap|: some thirty small ops and,
+backward, four index scatters into zeroed depth-sized buffers. Here one loop gives the
+mean and keeps each counted point's sign; the backward scatters sign / (count ·
+footprint) through the four taps' weights into one depth gradient. Same formulas and
+masks as the torch path, float64 inside (``tests/test_silhouette_compiled.py`` holds
+the value and gradient to it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from numba import njit
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from core.render.depth_geometry import BilinearTaps
+
+__all__ = ["silhouette_gap_compiled"]
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _tap(flat, i00, w, fx, fy):  # pragma: no cover - numba
+    v00, v01 = np.float64(flat[i00]), np.float64(flat[i00 + 1])
+    v10, v11 = np.float64(flat[i00 + w]), np.float64(flat[i00 + w + 1])
+    return (v00 * (1.0 - fx) + v01 * fx) * (1.0 - fy) + (v10 * (1.0 - fx) + v11 * fx) * fy
+
+
+@njit(nogil=True, cache=True)
+def _forward(
+    depth, valid, width, i00, fxs, fys, inside, z, focal, occluded, floating, sign
+):  # pragma: no cover - numba
+    """Mean |gap| over the counted points and how many; ``sign[k]`` the counted point's
+    sign of gap (0 where not counted, and where the gap is exactly 0, as torch's abs)."""
+    total = 0.0
+    count = 0
+    for k in range(i00.shape[0]):
+        sign[k] = 0.0
+        if not inside[k]:
+            continue
+        fx, fy, i = np.float64(fxs[k]), np.float64(fys[k]), i00[k]
+        if not _tap(valid, i, width, fx, fy) > 0.999:
+            continue
+        zk = np.float64(z[k])
+        gap = (_tap(depth, i, width, fx, fy) - zk) / (zk / focal)
+        if not (gap > -occluded and gap < floating):
+            continue
+        total += abs(gap)
+        count += 1
+        sign[k] = 1.0 if gap > 0 else (-1.0 if gap < 0 else 0.0)
+    return total / max(count, 1), count
+
+
+@njit(nogil=True, cache=True)
+def _backward(g_depth, width, i00, fxs, fys, z, focal, sign, scale):  # pragma: no cover
+    for k in range(i00.shape[0]):
+        s = sign[k]
+        if s == 0.0:
+            continue
+        fx, fy, i = np.float64(fxs[k]), np.float64(fys[k]), i00[k]
+        g = scale * s / (np.float64(z[k]) / focal)
+        g_depth[i] += g * (1.0 - fx) * (1.0 - fy)
+        g_depth[i + 1] += g * fx * (1.0 - fy)
+        g_depth[i + width] += g * (1.0 - fx) * fy
+        g_depth[i + width + 1] += g * fx * fy
+
+
+class _SilhouetteGap(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, depth, valid, taps, z, focal, occluded, floating):  # type: ignore[override]
+        flat = depth.detach().contiguous().reshape(-1).numpy()
+        cover = valid.detach().to(depth.dtype).contiguous().reshape(-1).numpy()
+        arrays = (
+            taps.i00.contiguous().numpy(), taps.fx.contiguous().numpy(),
+            taps.fy.contiguous().numpy(), taps.inside.contiguous().numpy(),
+        )  # fmt: skip
+        z_np = z.detach().contiguous().numpy()
+        sign = np.empty(z_np.shape[0], np.float64)
+        mean, count = _forward(
+            flat, cover, taps.width, *arrays, z_np, focal, occluded, floating, sign
+        )
+        ctx.meta = (taps.width, arrays[:3], z_np, focal, sign, count, depth.shape)
+        return torch.tensor(mean, dtype=depth.dtype)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad):  # type: ignore[override]
+        width, (i00, fxs, fys), z_np, focal, sign, count, shape = ctx.meta
+        g_depth = np.zeros(int(np.prod(shape)), np.float64)
+        if count > 0:
+            scale = float(grad) / count
+            _backward(g_depth, width, i00, fxs, fys, z_np, focal, sign, scale)
+        g = torch.from_numpy(g_depth).to(grad.dtype).reshape(shape)
+        return g, None, None, None, None, None, None
+
+
+def silhouette_gap_compiled(
+    depth: Tensor, valid: Tensor, taps: BilinearTaps, z: Tensor, focal: float,
+    occluded: float, floating: float,
+) -> Tensor:  # fmt: skip
+    """Mean |rendered − point depth| in pixel footprints (``z / focal``) over the points
+    whose taps are inside the image, fully covered (> 0.999), and whose gap lies in
+    (−``occluded``, ``floating``); 0 (with zero gradient) when none is. Differentiable
+    in ``depth`` (H, W), a CPU float tensor."""
+    return _SilhouetteGap.apply(depth, valid, taps, z, focal, occluded, floating)
