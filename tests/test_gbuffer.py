@@ -218,16 +218,38 @@ def test_held_normal_depth_moves_the_plane_and_never_turns_it():
     assert g_plain.abs().max() > 1e-3
 
 
+def test_the_layouts_groups_start_at_its_offsets() -> None:
+    from core.render.gbuffer_compiled import FeatureLayout
+
+    for geometry_only in (False, True):
+        for roughness in (False, True):
+            for held in (False, True):
+                lay = FeatureLayout(geometry_only, roughness, held)
+                starts, col = {}, 0
+                for name, width in lay.groups():
+                    starts[name], col = col, col + width
+                assert col == lay.channels
+                assert (starts["normal"], starts["plane_dist"], starts["z_blend"]) == (
+                    lay.normal,
+                    lay.plane,
+                    lay.z,
+                )
+                if roughness:
+                    assert starts["roughness"] == lay.z + 1
+                if held:
+                    assert starts["normal_held"] == lay.held_start
+
+
 def test_the_channel_split_passes_back_only_the_fields_a_loss_reads() -> None:
     """split_channels hands each field's gradient back as one concatenation, zeros
     where a field was not read: the same gradient slicing gives."""
-    from core.render.gbuffer import channel_groups, split_channels
+    from core.render.gbuffer import split_channels
     from core.render.gbuffer_compiled import FeatureLayout
 
     for lay in (FeatureLayout(), FeatureLayout(True), FeatureLayout(False, True, True)):
         feats = torch.randn(5, 4, lay.channels, dtype=torch.float64, requires_grad=True)
         fields = split_channels(feats, lay)
-        assert list(fields) == [name for name, _ in channel_groups(lay)]
+        assert list(fields) == [name for name, _ in lay.groups()]
         loss = fields["normal"].square().sum() + 3.0 * fields["z_blend"].sum()
         (got,) = torch.autograd.grad(loss, feats)
         want = torch.zeros_like(feats)

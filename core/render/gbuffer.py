@@ -305,24 +305,12 @@ def render_gbuffer_tensors(
     return gb, res
 
 
-def channel_groups(lay: FeatureLayout) -> list[tuple[str, int]]:
-    """(G-buffer field, channel count) of each group a pass of layout ``lay`` splats,
-    in the order of its columns (a count of 1 is a (H, W) image)."""
-    groups = [] if lay.geometry_only else [("base", 3)]
-    groups += [("normal", 3), ("plane_dist", 1)]
-    groups += [] if lay.geometry_only else [("w_r", 1)]
-    groups += [("z_blend", 1)] + ([("roughness", 1)] if lay.roughness else [])
-    groups += [("normal_held", 3), ("plane_dist_held", 1)] if lay.held else []
-    assert sum(w for _, w in groups) == lay.channels
-    return groups
-
-
 def split_channels(features: Tensor, lay: FeatureLayout) -> dict[str, Tensor]:
     """The composited features (H, W, C) as their G-buffer fields. Their gradients come
     back as one concatenation: slicing each field off the image instead made autograd
     zero a full-size gradient buffer per field and add them up (5 fills, 4 adds and
     their copies, ~1 ms of a CPU training step)."""
-    groups = channel_groups(lay)
+    groups = lay.groups()
     parts = _SplitChannels.apply(features, tuple(w for _, w in groups))
     return {
         name: part if w > 1 else part.squeeze(-1)

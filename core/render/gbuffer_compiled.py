@@ -56,6 +56,15 @@ class FeatureLayout:
     def channels(self) -> int:
         return self.held_start + 4 * int(self.held)
 
+    def groups(self) -> list[tuple[str, int]]:
+        """(G-buffer field, channel count) of each group, in column order (a count of 1
+        is an (H, W) image): the order the offsets above describe."""
+        colour = [] if self.geometry_only else [("base", 3)]
+        w_r = [] if self.geometry_only else [("w_r", 1)]
+        rough = [("roughness", 1)] if self.roughness else []
+        held = [("normal_held", 3), ("plane_dist_held", 1)] if self.held else []
+        return [*colour, ("normal", 3), ("plane_dist", 1), *w_r, ("z_blend", 1), *rough, *held]
+
 
 @njit(nogil=True, cache=True, inline="always")
 def _facing(g, means, normals, rot, trans):  # pragma: no cover - numba

@@ -250,9 +250,8 @@ class SilhouetteDepth:
         """``compiled``: one numba pass and its backward
         (``core.training.silhouette_compiled``; None: for CPU float depth), False: the
         torch ops below, the reference."""
-        zero = depth.sum() * 0.0
         if self.per_view[view_index].numel() == 0:
-            return zero
+            return depth.sum() * 0.0
         taps, z = self._taps(view_index, camera, depth)
         if compiled is None:
             compiled = cpu_float(depth)
@@ -266,5 +265,5 @@ class SilhouetteDepth:
         gap = (d - z) / (z / camera.intrinsics.fx)  # in pixel footprints, + = behind
         ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
         if not bool(ok.any()):
-            return zero
+            return depth.sum() * 0.0
         return gap.abs()[ok].mean()
