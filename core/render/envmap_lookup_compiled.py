@@ -36,7 +36,7 @@ __all__ = ["sample_packed_lod"]
 _FACES = np.array(FACE_TABLE, np.int64)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _face_uv(dx, dy, dz):  # pragma: no cover - numba
     """(face, u, v, ma) of a finite, non-zero direction: the largest |component| picks
     the face (ties to the lower axis), u = sc/ma, v = tc/ma as in ``_FACES``.
@@ -56,7 +56,7 @@ def _face_uv(dx, dy, dz):  # pragma: no cover - numba
     return 5, -dx / az, -dy / az, az
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _pixel_setup(dx, dy, dz, lod, n_levels, min_major):  # pragma: no cover - numba
     """(valid, face, u, v, ma, lo, frac, lod_passes_grad) of one pixel (float64 inputs)."""
     valid = (
@@ -76,7 +76,7 @@ def _pixel_setup(dx, dy, dz, lod, n_levels, min_major):  # pragma: no cover - nu
     return valid, f, u, v, ma, lo, frac, passes
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _level_tap(u, v, f, lev, offsets, sizes):  # pragma: no cover - numba
     """First flat index, bilinear weights (fx, fy), padded size and half the face size
     of the 2×2 taps at level ``lev`` (``envmap._PaddedBilinear``'s coordinates)."""
@@ -89,7 +89,7 @@ def _level_tap(u, v, f, lev, offsets, sizes):  # pragma: no cover - numba
     return offsets[lev] + f * p * p + int(y0) * p + int(x0), x - x0, y - y0, p, half_r
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _bilinear(flat, i00, p, fx, fy, c):  # pragma: no cover - numba
     t0, t1 = np.float64(flat[i00, c]), np.float64(flat[i00 + 1, c])
     t2, t3 = np.float64(flat[i00 + p, c]), np.float64(flat[i00 + p + 1, c])

@@ -222,7 +222,7 @@ def features_compiled(
     return _SplatFeatures.apply(means, colors, normals_world, w_r, roughness, camera, layout)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _lower_median_positive(z):  # pragma: no cover - numba
     """Lower median of the finite positive values of float32 ``z`` (NaN when none): a
     histogram of the top 17 bits (positive floats order as their bits), then a sort of

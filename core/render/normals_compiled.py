@@ -27,7 +27,7 @@ from core.render.rotations import QUAT_EPS
 __all__ = ["normals_compiled"]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _axis(log_scales, i):  # pragma: no cover - numba
     """argmin of row i (first index on ties; a NaN wins, as torch.argmin)."""
     a, b, c = log_scales[i, 0], log_scales[i, 1], log_scales[i, 2]
@@ -43,7 +43,7 @@ def _axis(log_scales, i):  # pragma: no cover - numba
     return k
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _unit(quats, i, eps2):  # pragma: no cover - numba
     """(w, x, y, z, 1/|q|, degenerate) of row i."""
     w, x, y, z = (np.float64(quats[i, 0]), np.float64(quats[i, 1]), np.float64(quats[i, 2]),

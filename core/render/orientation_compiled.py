@@ -24,7 +24,7 @@ from core.scene.cameras import Camera
 __all__ = ["record_compiled"]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _bilinear(img, x, y):  # pragma: no cover - numba
     """``depth_geometry.bilinear_lookup`` of one point (x, y already minus 0.5, finite)."""
     h, w = img.shape

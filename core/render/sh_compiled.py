@@ -30,7 +30,7 @@ from core.render.sh import C0, C1, C2, C3, _check_degree
 _EPS = 1e-12
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _direction(means, campos, i):  # pragma: no cover - numba
     """(x, y, z) unit view direction of Gaussian i and its normaliser 1/|v| (safe)."""
     vx = float(means[i, 0]) - campos[0]
@@ -41,7 +41,7 @@ def _direction(means, campos, i):  # pragma: no cover - numba
     return vx * r, vy * r, vz * r, r, n2 >= _EPS * _EPS
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _basis(x, y, z, degree, Y):  # pragma: no cover - numba
     """Y[:(degree+1)²] = the 3DGS real SH basis at the unit direction (x, y, z)."""
     Y[0] = C0
@@ -66,7 +66,7 @@ def _basis(x, y, z, degree, Y):  # pragma: no cover - numba
             Y[15] = C3[6] * x * (xx - 3.0 * yy)
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _basis_vjp(x, y, z, degree, w):  # pragma: no cover - numba
     """Σ_j w_j ∇Y_j at the unit direction (x, y, z): the gradient w.r.t. the direction."""
     gx = gy = gz = 0.0
@@ -110,12 +110,12 @@ def _basis_vjp(x, y, z, degree, w):  # pragma: no cover - numba
     return gx, gy, gz
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _coeff(dc, rest, i, j, c):  # pragma: no cover - numba
     return float(dc[i, 0, c]) if j == 0 else float(rest[i, j - 1, c])
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _expand(dc, rest, i, Y, nb, c):  # pragma: no cover - numba
     """Σ_j Y_j c_ij for channel c: the colour before the +0.5 and the clamp."""
     acc = 0.0

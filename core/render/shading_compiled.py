@@ -38,7 +38,7 @@ from core.render.envmap_pack_compiled import packed_cube_levels
 __all__ = ["can_shade_compiled", "shade_compiled"]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _face_st(x, y, z):  # pragma: no cover - numba
     """(face, sc, tc, ma) of direction (x, y, z).
 
@@ -57,7 +57,7 @@ def _face_st(x, y, z):  # pragma: no cover - numba
     return face, sc, tc, ma
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _tap(face, sc, tc, ma, offset, p):  # pragma: no cover - numba
     """First flat index and bilinear weights (fx, fy) of the 2×2 taps in a padded level
     of size ``p`` (face size p − 2) whose face 0 starts at flat row ``offset``."""

@@ -32,13 +32,13 @@ __all__ = ["single_view_loss_compiled"]
 _CENTRAL, _FWD, _BWD = 0, 1, 2
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _point(depth, rays, j, i):  # pragma: no cover - numba
     d = np.float64(depth[j, i])
     return d * rays[j, i, 0], d * rays[j, i, 1], d * rays[j, i, 2]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _step(ax, ay, az, mx, my, mz, bx, by, bz, ratio):  # pragma: no cover - numba
     """Difference across the pixel (a: the +1 neighbour, m: the pixel, b: the −1 one):
     central, or twice the shorter side where one side is ``ratio``× longer (ratio ≤ 0:
@@ -128,7 +128,7 @@ def _pixel_rows(
         sums[j, 1] = count
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _take(g, which, j, i, role, scale, acc):  # pragma: no cover - numba
     """Add pixel (j, i)'s difference gradient ``g`` as seen by one of its stencil
     points: role +1 (the +1 neighbour), −1 (the −1 neighbour), 0 (the pixel)."""

@@ -32,7 +32,7 @@ _S_OK, _S_E, _S_UN, _S_VN, _S_DN = range(5)
 _N_STATE = 5
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _rot(R, x, y, z):  # pragma: no cover - numba
     """R v."""
     return (R[0, 0] * x + R[0, 1] * y + R[0, 2] * z,
@@ -40,7 +40,7 @@ def _rot(R, x, y, z):  # pragma: no cover - numba
             R[2, 0] * x + R[2, 1] * y + R[2, 2] * z)  # fmt: skip
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _rot_t(R, x, y, z):  # pragma: no cover - numba
     """Rᵀ v."""
     return (R[0, 0] * x + R[1, 0] * y + R[2, 0] * z,
@@ -48,20 +48,20 @@ def _rot_t(R, x, y, z):  # pragma: no cover - numba
             R[0, 2] * x + R[1, 2] * y + R[2, 2] * z)  # fmt: skip
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _to_cam(R, t, x, y, z):  # pragma: no cover - numba
     """R p + t."""
     a, b, c = _rot(R, x, y, z)
     return a + t[0], b + t[1], c + t[2]
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _to_world(R, t, x, y, z):  # pragma: no cover - numba
     """Rᵀ (p − t)."""
     return _rot_t(R, x - t[0], y - t[1], z - t[2])
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _in_front(x, y, z):  # pragma: no cover - numba
     """``project_in_front``'s test: finite and z > 1e-4 |p|."""
     if not (math.isfinite(x) and math.isfinite(y) and math.isfinite(z)):
@@ -69,7 +69,7 @@ def _in_front(x, y, z):  # pragma: no cover - numba
     return z > 1e-4 * math.sqrt(x * x + y * y + z * z)
 
 
-@njit(nogil=True, cache=True)
+@njit(nogil=True, cache=True, inline="always")
 def _taps(img, u, v):  # pragma: no cover - numba
     """``bilinear_lookup`` at pixel coordinates (u, v): (value, inside, x0, y0, x1, y1,
     fx, fy); the far taps (x1, y1) stay in the image for a 1-px wide or high one."""

@@ -168,21 +168,21 @@ def _prepare(
 # ---------------------------------------------------------------------------------------
 
 
-@njit(fastmath=False, cache=True)
+@njit(fastmath=False, cache=True, inline="always")
 def _ceil_clamped(v, lo, hi):  # pragma: no cover
     """ceil(v) clamped to [lo, hi] (clamping first keeps huge or inf v safe)."""
     v = min(max(v, lo - 1.0), hi + 1.0)
     return min(max(math.ceil(v), lo), hi)
 
 
-@njit(fastmath=False, cache=True)
+@njit(fastmath=False, cache=True, inline="always")
 def _floor_clamped(v, lo, hi):  # pragma: no cover
     """floor(v) clamped to [lo, hi]."""
     v = min(max(v, lo - 1.0), hi + 1.0)
     return min(max(math.floor(v), lo), hi)
 
 
-@njit(fastmath=False, cache=True)
+@njit(fastmath=False, cache=True, inline="always")
 def _span(mode, centre, half, lo, hi):  # pragma: no cover
     """Pixels [i0, i1) of [lo, hi) whose centres (i + 0.5) lie within centre ± half."""
     if mode == 2:
@@ -192,7 +192,7 @@ def _span(mode, centre, half, lo, hi):  # pragma: no cover
     return i0, i1
 
 
-@njit(fastmath=False, cache=True)
+@njit(fastmath=False, cache=True, inline="always")
 def _row_span(mode, geo_g, mx, dy, lo, hi):  # pragma: no cover
     """Columns [c0, c1) of [lo, hi) inside the culling ellipse on the row at offset dy."""
     if mode == 2:

@@ -37,7 +37,7 @@ _S_QN, _S_ZS, _S_IND, _S_CLX, _S_CLY, _S_A0P, _S_C0P, _S_BP, _S_D0P, _S_OK = ran
 _N_STATE = 10
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _rotmat(w, x, y, z, R):  # pragma: no cover - numba
     R[0, 0] = 1.0 - 2.0 * (y * y + z * z)
     R[0, 1] = 2.0 * (x * y - w * z)
@@ -50,7 +50,7 @@ def _rotmat(w, x, y, z, R):  # pragma: no cover - numba
     R[2, 2] = 1.0 - 2.0 * (x * x + y * y)
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _unit_quat(q, i):  # pragma: no cover - numba
     """(w, x, y, z, |q|) of row i, with the identity for a (near) zero quaternion."""
     w, x, y, z = float(q[i, 0]), float(q[i, 1]), float(q[i, 2]), float(q[i, 3])
@@ -60,7 +60,7 @@ def _unit_quat(q, i):  # pragma: no cover - numba
     return 1.0, 0.0, 0.0, 0.0, qn
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _given_cam_cov(covs, Rc, i, Sc, M):  # pragma: no cover - numba
     """Sc = Rc Σᵢ Rcᵀ for a given world covariance (M is scratch)."""
     for r in range(3):
@@ -75,7 +75,7 @@ def _given_cam_cov(covs, Rc, i, Sc, M):  # pragma: no cover - numba
             Sc[r, c] = M[r, 0] * Rc[c, 0] + M[r, 1] * Rc[c, 1] + M[r, 2] * Rc[c, 2]
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _cam_cov(R, s, Rc, i, Sc, M):  # pragma: no cover - numba
     """Sc = Rc (R diag(s²) Rᵀ) Rcᵀ for Gaussian i (R already filled; M is scratch)."""
     for r in range(3):
@@ -89,7 +89,7 @@ def _cam_cov(R, s, Rc, i, Sc, M):  # pragma: no cover - numba
             Sc[r, c] = M[r, 0] * M[c, 0] + M[r, 1] * M[c, 1] + M[r, 2] * M[c, 2]
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _load_cam_cov(use_covs, covs, quats, scales, Rc, i, R, Sc, M):  # pragma: no cover
     """Fill Sc (camera-space Σ) for Gaussian i; returns its unit quaternion and |q|
     (the identity and 1 for a given covariance)."""
@@ -102,7 +102,7 @@ def _load_cam_cov(use_covs, covs, quats, scales, Rc, i, R, Sc, M):  # pragma: no
     return w, qx, qy, qz, qn
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _centre(means, Rc, tc, i):  # pragma: no cover - numba
     """Camera-space centre (x, y, z) of Gaussian i."""
     mx, my, mz = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
@@ -112,7 +112,7 @@ def _centre(means, Rc, tc, i):  # pragma: no cover - numba
     return x, y, z
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _ewa(x, y, zs, fx, fy, lims, Sc):  # pragma: no cover - numba
     """Clamped centre, EWA Jacobian entries and the unfiltered 2D covariance J Σc Jᵀ."""
     clx = min(max(x / zs, -lims[0]), lims[1])
@@ -126,7 +126,7 @@ def _ewa(x, y, zs, fx, fy, lims, Sc):  # pragma: no cover - numba
     return clx, cly, j00, j02, j11, j12, a_raw, b_raw, c_raw
 
 
-@njit(cache=True, nogil=True, fastmath=False)
+@njit(cache=True, nogil=True, fastmath=False, inline="always")
 def _psd_filtered(a_raw, b_raw, c_raw, eps2d, eps_dt):  # pragma: no cover - numba
     """The reference's PSD clamp and low-pass: (a0, c0, lim, b, a, c, a0c0 − b², det0)."""
     a0 = max(a_raw, 0.0)
