@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import pytest
 import torch
 
 from bench.viewer import seen_from_outside, sphere_model
@@ -57,6 +58,29 @@ def test_frozen_frame_without_hidden_gaussians_is_identical(tmp_path: Path) -> N
         for ch in channels:
             assert torch.equal(fast.image(ch), ref.image(ch)), ch
         assert float(ref.image("alpha").max()) > 0.9  # the sphere is in view
+
+
+def test_a_frame_without_depth_leaves_its_two_channels_out_and_nothing_else(
+    tmp_path: Path,
+) -> None:
+    """A frame asked for no ``depth`` composites neither D nor centre z (the viewer's
+    shaded frame: 7 channels of 9), and every channel it has is the full frame's, bit
+    for bit (each channel composites on its own); asking it for depth says why not."""
+    frozen = one_sided_sphere(tmp_path)
+    unfrozen = TrainedModel.open(tmp_path / "checkpoint.pt", device="cpu")
+    intr = Intrinsics(60.0, 60.0, 32.0, 24.0, 64, 48)
+    cam = Camera.look_at([2.2, 0.3, 0.6], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0], intr)
+    colour = ("final", "specular", "base", "normal", "w_r", "roughness", "alpha")
+    for model in (frozen, unfrozen):
+        lean = model.render(cam, colour)
+        full = model.render(cam, (*colour, "depth"))
+        assert lean.gbuffer.plane_dist is None and lean.gbuffer.z_blend is None
+        assert full.gbuffer.plane_dist is not None and full.gbuffer.z_blend is not None
+        for ch in colour:
+            assert torch.equal(lean.image(ch), full.image(ch)), ch
+        assert float(lean.image("alpha").max()) > 0.9
+        with pytest.raises(ValueError, match="render it with the 'depth' channel"):
+            lean.depth()
 
 
 def test_mesh_fusion_frames_are_the_same_from_a_frozen_copy(tmp_path: Path) -> None:

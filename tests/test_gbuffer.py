@@ -238,6 +238,18 @@ def test_the_layouts_groups_start_at_its_offsets() -> None:
                     assert starts["roughness"] == lay.z + 1
                 if held:
                     assert starts["normal_held"] == lay.held_start
+                if geometry_only or held:
+                    with pytest.raises(ValueError, match="read for its depth"):
+                        lay.columns_without_depth()
+                    continue
+                # a pass without depth: the same groups less D and z, from those columns
+                cols = lay.columns_without_depth()
+                lean = lay.groups(depth=False)
+                assert [g for g in lay.groups() if g[0] not in ("plane_dist", "z_blend")] == lean
+                assert len(cols) == sum(w for _, w in lean) == lay.channels - 2
+                kept = [c for name, w in lay.groups() for c in range(starts[name], starts[name] + w)
+                        if name not in ("plane_dist", "z_blend")]  # fmt: skip
+                assert cols == kept
 
 
 def test_the_channel_split_passes_back_only_the_fields_a_loss_reads() -> None:

@@ -73,7 +73,7 @@ def bake_views(
     radius = float(model.radius) if model.radius is not None else 1.0
     for i, view in enumerate(views):
         cam = view.camera
-        frame = model.render(cam, ("base", "roughness"))
+        frame = model.render(cam, ("base", "roughness", "depth"))
         gb = frame.gbuffer
         depth, valid = frame.depth()
         alpha = gb.alpha

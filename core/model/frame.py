@@ -26,6 +26,9 @@ SHADED = frozenset({"final", "specular"})
 ROUGH = frozenset({"final", "specular", "roughness"})
 # channels that need per-Gaussian colours (SH toward the camera)
 COLOURED = frozenset({"final", "specular", "base"})
+# channels that read the depth (D and centre z: two composited channels a frame of
+# colour, normal, w_r, roughness or alpha leaves out)
+DEPTH = frozenset({"depth"})
 
 
 def colormap(x: Tensor, valid: Tensor, name: str = "turbo") -> Tensor:
@@ -59,7 +62,8 @@ class Frame:
     planar_depth: bool
 
     def depth(self) -> tuple[Tensor, Tensor]:
-        """The depth the model's geometry uses (Eq. 8 planar, or Eq. 5) and where valid."""
+        """The depth the model's geometry uses (Eq. 8 planar, or Eq. 5) and where valid
+        (a frame rendered without the ``depth`` channel has none: ValueError)."""
         return geometry_depth(self.gbuffer, self.planar_depth)
 
     def world_normals(self) -> Tensor:

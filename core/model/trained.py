@@ -21,7 +21,7 @@ from torch import Tensor
 
 from core.config import TrainConfig, saved_config
 from core.model.checkpoint import CheckpointError, load_checkpoint
-from core.model.frame import COLOURED, ROUGH, SHADED, Frame
+from core.model.frame import COLOURED, DEPTH, ROUGH, SHADED, Frame
 from core.model.placement import reopen_placement
 from core.model.plan import ScenePlan
 from core.model.schedule import Phase, phase_at
@@ -228,7 +228,8 @@ class TrainedModel:
 
         Only what ``channels`` need is computed: the SH colours toward the camera for
         colour channels (geometry channels splat degree 0), deferred shading (env map
-        lookups) for ``final`` and ``specular`` only. A frozen model also drops the
+        lookups) for ``final`` and ``specular`` only, the depth's two channels for
+        ``depth`` only (``Frame.depth`` needs it). A frozen model also drops the
         Gaussians this view cannot show (``visible_index``) before projecting them;
         ``compact=False`` keeps them all, the reference it is tested against.
         """
@@ -237,6 +238,7 @@ class TrainedModel:
         bg = self.background if background is None else background
         sh_degree = phase.sh_degree if wanted & COLOURED else 0
         with_rough = bool(wanted & ROUGH)
+        with_depth = bool(wanted & DEPTH)
         if self._static is not None:
             st = self._static
             cull = view_opacity_scale(
@@ -259,6 +261,7 @@ class TrainedModel:
                 pick(st["w_r"]), camera, covariances=pick(st["covariances"]),
                 backend=self.backend, antialiased=phase.antialiased, lowpass=phase.lowpass,
                 roughness=pick(st.get("roughness")) if with_rough else None, near=near,
+                depth=with_depth,
             )  # fmt: skip
         else:
             cull = view_opacity_scale(
@@ -267,7 +270,7 @@ class TrainedModel:
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,
-                with_roughness=with_rough,
+                with_roughness=with_rough, depth=with_depth,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

@@ -45,7 +45,8 @@ class GBuffer:
 
     - ``base``: blended base colour (SH evaluated for this view), (H, W, 3).
     - ``normal``: blended camera-space normal (OpenCV axes, not normalised), (H, W, 3).
-    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W).
+    - ``plane_dist``: blended plane distance D = n·μ in camera space, (H, W); None
+      when the pass left the depth out (``render_gbuffer_tensors(depth=False)``).
     - ``w_r``: blended reflection strength in [0, 1], (H, W).
     - ``alpha``: accumulated opacity, (H, W).
     - ``camera``: the view these buffers belong to.
@@ -65,7 +66,7 @@ class GBuffer:
 
     base: Tensor
     normal: Tensor
-    plane_dist: Tensor
+    plane_dist: Tensor | None
     w_r: Tensor
     alpha: Tensor
     camera: Camera
@@ -84,6 +85,11 @@ class GBuffer:
 
     @cached_property
     def _planar(self) -> tuple[Tensor, Tensor]:
+        if self.plane_dist is None:
+            raise ValueError(
+                "this G-buffer has no depth: it was rendered without its depth channels "
+                "(render it with the 'depth' channel)"
+            )
         return self._eq8(self.normal, self.plane_dist)
 
     @property
@@ -239,6 +245,7 @@ def render_gbuffer_tensors(
     lowpass: float = 0.3,
     roughness: Tensor | None = None,
     held_plane: bool = False,
+    depth: bool = True,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -259,6 +266,10 @@ def render_gbuffer_tensors(
     each splat's plane is from the pixel's point. Detaching the blended N or D instead
     breaks that balance (D = n·μ alone varies by |μ| with a splat's orientation), and
     training collapsed each way it was tried (docs/benchmarks.md, issue 36).
+
+    ``depth=False`` composites neither D nor centre z (``plane_dist`` and ``z_blend``
+    are None): a frame read for its colour, normal, w_r or roughness only (the viewer's
+    shaded frame) splats 7 channels instead of 9.
     """
     geometry_only = colors is None
     held = held_plane and not geometry_only
@@ -270,6 +281,8 @@ def render_gbuffer_tensors(
     lay = FeatureLayout(geometry_only, roughness is not None and not geometry_only, held)
     if near is None:
         near = near_plane(feats[:, lay.z])
+    if not depth:
+        feats = feats[:, lay.columns_without_depth()]
     res = rasterize(
         means,
         quats,
@@ -284,18 +297,18 @@ def render_gbuffer_tensors(
         antialiased=antialiased,
         eps2d=lowpass,
     )
-    ch = split_channels(res.features, lay)
+    ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:
         zero = res.features.new_zeros(res.features.shape[:-1])
         ch["base"], ch["w_r"] = zero[..., None].expand(*zero.shape, 3), zero
     gb = GBuffer(
         base=ch["base"],
         normal=ch["normal"],
-        plane_dist=ch["plane_dist"],
+        plane_dist=ch.get("plane_dist"),
         w_r=ch["w_r"],
         alpha=res.alpha,
         camera=camera,
-        z_blend=ch["z_blend"],
+        z_blend=ch.get("z_blend"),
         roughness=ch.get("roughness"),
         normal_held=ch.get("normal_held"),
         plane_dist_held=ch.get("plane_dist_held"),
@@ -305,12 +318,13 @@ def render_gbuffer_tensors(
     return gb, res
 
 
-def split_channels(features: Tensor, lay: FeatureLayout) -> dict[str, Tensor]:
-    """The composited features (H, W, C) as their G-buffer fields. Their gradients come
-    back as one concatenation: slicing each field off the image instead made autograd
-    zero a full-size gradient buffer per field and add them up (5 fills, 4 adds and
-    their copies, ~1 ms of a CPU training step)."""
-    groups = lay.groups()
+def split_channels(features: Tensor, lay: FeatureLayout, depth: bool = True) -> dict[str, Tensor]:
+    """The composited features (H, W, C) as their G-buffer fields (``depth=False``: a
+    pass that left D and centre z out). Their gradients come back as one concatenation:
+    slicing each field off the image instead made autograd zero a full-size gradient
+    buffer per field and add them up (5 fills, 4 adds and their copies, ~1 ms of a CPU
+    training step)."""
+    groups = lay.groups(depth)
     parts = _SplitChannels.apply(features, tuple(w for _, w in groups))
     return {
         name: part if w > 1 else part.squeeze(-1)

@@ -23,7 +23,17 @@ from torch.autograd.function import once_differentiable
 from core.kernels.pool import run_ranges
 from core.scene.cameras import Camera
 
-__all__ = ["FeatureLayout", "can_build_compiled", "features_compiled", "lower_median_positive"]
+__all__ = [
+    "DEPTH_FIELDS",
+    "FeatureLayout",
+    "can_build_compiled",
+    "features_compiled",
+    "lower_median_positive",
+]
+
+
+# the fields a pass read only for colour can leave out (GBuffer.plane_dist, z_blend)
+DEPTH_FIELDS = ("plane_dist", "z_blend")
 
 
 @dataclass(frozen=True)
@@ -56,14 +66,24 @@ class FeatureLayout:
     def channels(self) -> int:
         return self.held_start + 4 * int(self.held)
 
-    def groups(self) -> list[tuple[str, int]]:
+    def groups(self, depth: bool = True) -> list[tuple[str, int]]:
         """(G-buffer field, channel count) of each group, in column order (a count of 1
-        is an (H, W) image): the order the offsets above describe."""
+        is an (H, W) image): the order the offsets above describe. ``depth=False``: the
+        groups of a pass that splats :meth:`columns` without the depth (D and centre z)."""
         colour = [] if self.geometry_only else [("base", 3)]
         w_r = [] if self.geometry_only else [("w_r", 1)]
         rough = [("roughness", 1)] if self.roughness else []
         held = [("normal_held", 3), ("plane_dist_held", 1)] if self.held else []
-        return [*colour, ("normal", 3), ("plane_dist", 1), *w_r, ("z_blend", 1), *rough, *held]
+        out = [*colour, ("normal", 3), ("plane_dist", 1), *w_r, ("z_blend", 1), *rough, *held]
+        return out if depth else [g for g in out if g[0] not in DEPTH_FIELDS]
+
+    def columns_without_depth(self) -> list[int]:
+        """The feature columns a pass composites when nothing reads its depth (a frame of
+        colour, normal, w_r or roughness): every column but D and centre z, which cost
+        as much to composite as any other (two of a frame's nine)."""
+        if self.geometry_only or self.held:
+            raise ValueError("a geometry-only or held-normal pass is read for its depth")
+        return [c for c in range(self.channels) if c not in (self.plane, self.z)]
 
 
 @njit(nogil=True, cache=True, inline="always")
