@@ -145,6 +145,15 @@ def _backward_range(
     g = np.zeros(3)
     want_means = g_means.shape[0] > 0
     for i in range(lo, hi):
+        if g_rgb[i, 0] == 0.0 and g_rgb[i, 1] == 0.0 and g_rgb[i, 2] == 0.0:
+            # no gradient reaches this colour (a splat culled or off-screen in this view:
+            # 40-50% of a trained closed object's): its coefficients get zeros, g_means
+            # is zeroed already
+            for c in range(3):
+                g_dc[i, 0, c] = 0.0
+                for j in range(1, nb):
+                    g_rest[i, j - 1, c] = 0.0
+            continue
         x, y, z, r, unclamped = _direction(means, campos, i)
         _basis(x, y, z, degree, Y)
         for c in range(3):  # clamp_min passes the gradient at and above 0

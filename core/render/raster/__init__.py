@@ -17,6 +17,7 @@ from torch import Tensor
 from core.errors import BackendUnavailableError
 from core.render.raster.binning import TileBins, bin_gaussians
 from core.render.raster.projection import (
+    ALPHA_MIN,
     Projected,
     covariances_from,
     project_gaussians,
@@ -201,13 +202,28 @@ def rasterize(
                 covariances = covariances_from(quats, scales)
             proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
     with stage("bin"):
-        bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, W, H, tile_size)
+        bins = bin_gaussians(
+            proj.means2d, proj.depths, _bin_radii(proj.radii, opacities), W, H, tile_size
+        )
     fn = BACKENDS[name][1]
     if antialiased and proj.compensation is not None:
         opacities = opacities * proj.compensation
     with stage("composite"):
         feats, alpha = fn(proj, opacities, features, bins, W, H)
     return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
+
+
+def _bin_radii(radii: Tensor, opacities: Tensor) -> Tensor:
+    """The radii to bin by: 0 for the Gaussians whose opacity is below ALPHA_MIN, which
+    no compositing kernel evaluates (a splat's alpha is at most its opacity; NaN
+    included). One-sided culling zeroes 40-50% of a trained closed object's opacities
+    in every view: left in the tile lists they were sorted, placed and walked past
+    for nothing. The radii the result reports (densification's visibility) stay the
+    projection's."""
+    live = opacities.detach().reshape(-1) >= ALPHA_MIN
+    if bool(live.all()):
+        return radii
+    return torch.where(live.to(radii.device), radii, radii.new_zeros(()))
 
 
 from core.render.raster import cpu as _cpu_backend  # noqa: E402,F401  registers "cpu"
