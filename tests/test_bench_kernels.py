@@ -30,3 +30,25 @@ def test_sh_colors_bench_times_both_paths():
     for r in rows:
         assert all(math.isfinite(r[k]) and r[k] > 0 for k in ("ff", "pf", "fb", "pb"))
     assert sh_table(rows).count("×") == 4
+
+
+def test_frame_time_bench_renders_the_viewers_model(capsys):
+    """bench.frame_time renders the viewer benchmark's model through the viewer's call."""
+    import json
+
+    import torch
+
+    from bench.frame_time import main as frame_time
+    from core.kernels import pool
+
+    before = (torch.get_num_threads(), pool._KERNEL_THREADS)
+    try:
+        args = ["--gaussians", "2000", "--sizes", "24", "40", "--repeat", "2", "--threads", "1"]
+        assert frame_time(args) == 0
+    finally:  # the bench sets the process's thread layout
+        torch.set_num_threads(before[0])
+        pool.set_kernel_threads(before[1])
+    out = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    assert out["gaussians"] == 2000 and out["channel"] == "final"
+    assert [r["size"] for r in out["rows"]] == [24, 40]
+    assert all(0 < r["min_ms"] <= r["median_ms"] for r in out["rows"])
