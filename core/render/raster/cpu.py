@@ -542,25 +542,47 @@ class CpuComposite(torch.autograd.Function):
                 else:
                     args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
                     run_workers(_backward_worker, n_workers, args)
-                for w in range(1, n_workers):
-                    np.add(gbuf[0], gbuf[w], out=gbuf[0])
-            tot = torch.from_numpy(gbuf[0])
-            grads = (
-                tot[:, _G_MX : _G_MY + 1],
-                tot[:, _G_A : _G_C + 1],
-                tot[:, _G_O],
-                tot[:, _G_F:],
-            )
-            # copies: nothing may keep a view of the pooled buffer
+            # the workers' sums added and split into the four inputs' gradients, in their
+            # dtypes, in one pass (nothing may keep a view of the pooled buffer)
+            widths = (2, 3, 1, n_ch)
+            parts = [
+                np.empty((n, w), _store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
+            ]
+            run_ranges(_reduce_split_range, n, (gbuf, *parts))
             out = [
-                g.to(d, memory_format=torch.contiguous_format, copy=True).reshape(s)
-                if need
-                else None
+                torch.from_numpy(g).to(d).reshape(s) if need else None
                 for g, s, d, need in zip(
-                    grads, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
+                    parts, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
                 )
             ]
         return (*out, None, None, None, None, None)
+
+
+def _store_dtype(dtype: torch.dtype) -> type:
+    """The numpy dtype a kernel writes a torch dtype's values in (float64 for any other,
+    converted after)."""
+    return np.float32 if dtype == torch.float32 else np.float64
+
+
+@njit(nogil=True, cache=True)
+def _reduce_split_range(lo, hi, gbuf, g_m2d, g_con, g_op, g_feat):  # pragma: no cover - numba
+    """Rows [lo, hi) of the per-worker gradient sums (W, N, 6 + C), added worker by worker
+    (the order ``np.add`` took) and stored, rounded once, into (N, 2) screen means, (N, 3)
+    conics, (N, 1) opacities and (N, C) features."""
+    n_workers, n_ch = gbuf.shape[0], g_feat.shape[1]
+    for g in range(lo, hi):
+        for k in range(6 + n_ch):
+            acc = gbuf[0, g, k]
+            for w in range(1, n_workers):
+                acc += gbuf[w, g, k]
+            if k < _G_A:
+                g_m2d[g, k] = acc
+            elif k < _G_O:
+                g_con[g, k - _G_A] = acc
+            elif k == _G_O:
+                g_op[g, 0] = acc
+            else:
+                g_feat[g, k - _G_F] = acc
 
 
 def rasterize_cpu(

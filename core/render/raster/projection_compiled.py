@@ -194,7 +194,7 @@ def _forward_range(
 
 @njit(cache=True, nogil=True, fastmath=False)
 def _backward_range(
-    lo, hi, means, quats, scales, covs, Rc, tc, intr, lims, params, conics, comp, state,
+    lo, hi, means, quats, scales, covs, Rc, tc, intr, lims, params, state,
     g_m2d, g_con, g_comp, g_means, g_quats, g_scales,
 ):  # fmt: skip  # pragma: no cover - numba
     """Gradients of Gaussians lo..hi-1; with given ``covs`` only the means get one."""
@@ -227,7 +227,7 @@ def _backward_range(
         g_b = -gB / ds
         g_ds = -(gA * c - gB * b + gC * a) / (ds * ds)
         g_det0 = 0.0
-        k = float(comp[i])
+        k = math.sqrt(max(det0 / ds, 1e-12))  # the forward's comp, recomputed (same ops)
         if det0 / ds >= 1e-12 and k > 0.0:
             g_r = gk * 0.5 / k
             g_det0 += g_r / ds
@@ -347,6 +347,12 @@ def _camera_arrays(
     return Rc, tc, k, lims, params
 
 
+def _np_dtype(dtype: torch.dtype | None) -> type:
+    """The numpy dtype a kernel stores a torch dtype's values in (float64 for any
+    other, converted after)."""
+    return np.float32 if dtype == torch.float32 else np.float64
+
+
 class CompiledProjection(torch.autograd.Function):
     """(means, quats, scales | covs) → (means2d, conics, compensation); depths and radii
     ride along. Given covariances get no gradient (callers check)."""
@@ -365,11 +371,14 @@ class CompiledProjection(torch.autograd.Function):
             s = np.empty((0, 3), np.float64)
             c = covs.detach().contiguous().numpy()
         cam = _camera_arrays(camera, dtype, near, far, eps2d)
-        means2d = np.empty((n, 2), np.float64)
-        conics = np.empty((n, 3), np.float64)
-        depths = np.empty(n, np.float64)
+        # outputs in the inputs' dtype: the kernel rounds its float64 values on store,
+        # as a conversion afterwards would (four passes over (N, ·) arrays saved)
+        npdt = _np_dtype(dtype)
+        means2d = np.empty((n, 2), npdt)
+        conics = np.empty((n, 3), npdt)
+        depths = np.empty(n, npdt)
         radii = np.empty(n, np.int64)
-        comp = np.empty(n, np.float64)
+        comp = np.empty(n, npdt)
         # Only a backward reads the state (80 bytes a Gaussian): skip it without one.
         keep = any(ctx.needs_input_grad[:4])
         state = np.empty((n if keep else 0, _N_STATE), np.float64)
@@ -378,7 +387,7 @@ class CompiledProjection(torch.autograd.Function):
         # The numpy views alias the inputs: saving them makes autograd refuse a backward
         # after an in-place change instead of silently using the new values.
         ctx.save_for_backward(means, quats, scales, covs)
-        ctx.arrays = (m, q, s, c, cam, conics, comp, state)
+        ctx.arrays = (m, q, s, c, cam, state)
         ctx.dtypes = (means.dtype, None if quats is None else quats.dtype,
                       None if scales is None else scales.dtype)  # fmt: skip
         out = [torch.from_numpy(a).to(dtype) for a in (means2d, conics, comp, depths)]
@@ -390,24 +399,29 @@ class CompiledProjection(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_m2d, g_con, g_comp, _g_depth, _g_radii):
         ctx.saved_tensors  # noqa: B018  (raises if an input was modified in place)
-        m, q, s, c, cam, conics, comp, state = ctx.arrays
+        m, q, s, c, cam, state = ctx.arrays
         n = m.shape[0]
 
         def arr(g: Tensor | None, shape: tuple[int, ...]) -> np.ndarray:
+            # float32 as it comes: the kernel widens each value exactly
             if g is None:
                 return np.zeros(shape, np.float64)
-            return g.detach().to(torch.float64).contiguous().numpy()
+            g = g.detach()
+            if g.dtype not in (torch.float32, torch.float64):
+                g = g.to(torch.float64)
+            return g.contiguous().numpy()
 
-        gm = np.zeros((n, 3), np.float64)
-        gq = np.zeros((n, 4), np.float64)
-        gs = np.zeros((n, 3), np.float64)
+        d_means, d_quats, d_scales = ctx.dtypes
+        # gradients in their parameters' dtype, rounded on store (see forward)
+        gm = np.zeros((n, 3), _np_dtype(d_means))
+        gq = np.zeros((n, 4), _np_dtype(d_quats))
+        gs = np.zeros((n, 3), _np_dtype(d_scales))
         args = (
-            m, q, s, c, *cam, conics, comp, state,
+            m, q, s, c, *cam, state,
             arr(g_m2d, (n, 2)), arr(g_con, (n, 3)), arr(g_comp, (n,)), gm, gq, gs,
         )  # fmt: skip
         run_ranges(_backward_range, n, args)
         need = ctx.needs_input_grad
-        d_means, d_quats, d_scales = ctx.dtypes
         return (
             torch.from_numpy(gm).to(d_means) if need[0] else None,
             torch.from_numpy(gq).to(d_quats) if need[1] else None,
