@@ -291,3 +291,26 @@ def test_registration_and_availability():
     assert available(torch.device("cpu")) is None
     reason = available(torch.device("cuda", 0))
     assert reason is not None and "CPU tensors only" in reason and "cuda:0" in reason
+
+
+def test_the_backward_reduction_adds_workers_in_order_and_rounds_once():
+    """``_reduce_split_range`` (the compositing backward's last pass) gives what adding
+    the workers' float64 buffers in order and converting each slice gave, bit for bit."""
+    import numpy as np
+
+    from core.render.raster.cpu import _reduce_split_range
+
+    rng = np.random.default_rng(3)
+    n, n_ch = 257, 5
+    for workers in (1, 2, 3):
+        gbuf = rng.standard_normal((workers, n, 6 + n_ch)) * 10.0 ** rng.integers(-8, 8, (1, n, 1))
+        want = gbuf[0].copy()
+        for w in range(1, workers):
+            np.add(want, gbuf[w], out=want)
+        for dtype in (np.float32, np.float64):
+            parts = [np.empty((n, k), dtype) for k in (2, 3, 1, n_ch)]
+            _reduce_split_range(0, n, gbuf, *parts)
+            ref = torch.from_numpy(want)
+            slices = (ref[:, 0:2], ref[:, 2:5], ref[:, 5:6], ref[:, 6:])
+            for got, exp in zip(parts, slices, strict=True):
+                assert torch.equal(torch.from_numpy(got), exp.to(torch.from_numpy(got).dtype))

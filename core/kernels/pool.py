@@ -18,7 +18,7 @@ import torch
 
 __all__ = [
     "kernel_threads", "run_ranges", "run_workers", "scratch_zeros", "set_kernel_threads",
-    "zeros_touched",
+    "store_dtype", "zeros_touched",
 ]  # fmt: skip
 
 _POOL: ThreadPoolExecutor | None = None
@@ -85,6 +85,14 @@ def run_ranges(kernel: Callable[..., None], n: int, args: tuple) -> None:
             kernel(lo, hi, *a)
 
     run_workers(by_worker, len(ranges), args)
+
+
+def store_dtype(dtype: torch.dtype | None) -> type:
+    """The numpy dtype a kernel writes a torch dtype's values in: float32 for float32
+    (the kernel rounds its float64 arithmetic on store, as a conversion afterwards
+    would, and the pass over the array is saved), float64 for anything else (converted
+    after by the caller)."""
+    return np.float32 if dtype == torch.float32 else np.float64
 
 
 def zeros_touched(shape: tuple[int, ...], dtype: type) -> np.ndarray:

@@ -69,7 +69,7 @@ class FeatureLayout:
     def groups(self, depth: bool = True) -> list[tuple[str, int]]:
         """(G-buffer field, channel count) of each group, in column order (a count of 1
         is an (H, W) image): the order the offsets above describe. ``depth=False``: the
-        groups of a pass that splats :meth:`columns` without the depth (D and centre z)."""
+        groups of a pass that splats :meth:`columns_without_depth`."""
         colour = [] if self.geometry_only else [("base", 3)]
         w_r = [] if self.geometry_only else [("w_r", 1)]
         rough = [("roughness", 1)] if self.roughness else []

@@ -58,6 +58,7 @@ from core.kernels.pool import (
     run_ranges,
     run_workers,
     scratch_zeros,
+    store_dtype,
     zeros_touched,
 )
 from core.render.raster import cpu_simd
@@ -546,7 +547,7 @@ class CpuComposite(torch.autograd.Function):
             # dtypes, in one pass (nothing may keep a view of the pooled buffer)
             widths = (2, 3, 1, n_ch)
             parts = [
-                np.empty((n, w), _store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
+                np.empty((n, w), store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
             ]
             run_ranges(_reduce_split_range, n, (gbuf, *parts))
             out = [
@@ -556,12 +557,6 @@ class CpuComposite(torch.autograd.Function):
                 )
             ]
         return (*out, None, None, None, None, None)
-
-
-def _store_dtype(dtype: torch.dtype) -> type:
-    """The numpy dtype a kernel writes a torch dtype's values in (float64 for any other,
-    converted after)."""
-    return np.float32 if dtype == torch.float32 else np.float64
 
 
 @njit(nogil=True, cache=True)

@@ -28,7 +28,7 @@ import torch
 from numba import njit
 from torch import Tensor
 
-from core.kernels.pool import run_ranges
+from core.kernels.pool import run_ranges, store_dtype
 from core.render.raster.projection import Projected
 from core.scene.cameras import Camera
 
@@ -347,12 +347,6 @@ def _camera_arrays(
     return Rc, tc, k, lims, params
 
 
-def _np_dtype(dtype: torch.dtype | None) -> type:
-    """The numpy dtype a kernel stores a torch dtype's values in (float64 for any
-    other, converted after)."""
-    return np.float32 if dtype == torch.float32 else np.float64
-
-
 class CompiledProjection(torch.autograd.Function):
     """(means, quats, scales | covs) → (means2d, conics, compensation); depths and radii
     ride along. Given covariances get no gradient (callers check)."""
@@ -373,7 +367,7 @@ class CompiledProjection(torch.autograd.Function):
         cam = _camera_arrays(camera, dtype, near, far, eps2d)
         # outputs in the inputs' dtype: the kernel rounds its float64 values on store,
         # as a conversion afterwards would (four passes over (N, ·) arrays saved)
-        npdt = _np_dtype(dtype)
+        npdt = store_dtype(dtype)
         means2d = np.empty((n, 2), npdt)
         conics = np.empty((n, 3), npdt)
         depths = np.empty(n, npdt)
@@ -413,9 +407,9 @@ class CompiledProjection(torch.autograd.Function):
 
         d_means, d_quats, d_scales = ctx.dtypes
         # gradients in their parameters' dtype, rounded on store (see forward)
-        gm = np.zeros((n, 3), _np_dtype(d_means))
-        gq = np.zeros((n, 4), _np_dtype(d_quats))
-        gs = np.zeros((n, 3), _np_dtype(d_scales))
+        gm = np.zeros((n, 3), store_dtype(d_means))
+        gq = np.zeros((n, 4), store_dtype(d_quats))
+        gs = np.zeros((n, 3), store_dtype(d_scales))
         args = (
             m, q, s, c, *cam, state,
             arr(g_m2d, (n, 2)), arr(g_con, (n, 3)), arr(g_comp, (n,)), gm, gq, gs,
