@@ -60,7 +60,7 @@ def face_uv_to_direction(face: Tensor, u: Tensor, v: Tensor) -> Tensor:
 
 
 @lru_cache(maxsize=16)
-def _pad_plan_cpu(resolution: int) -> tuple[Tensor, Tensor, Tensor]:
+def pad_plan_cpu(resolution: int) -> tuple[Tensor, Tensor, Tensor]:
     """Gather plan for the padded faces (6, R+2, R+2) from the flat texels (6·R·R).
 
     Returns (source index per padded texel, corner positions (24,), corner sources

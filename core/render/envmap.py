@@ -39,9 +39,9 @@ from torch.autograd.function import once_differentiable
 
 from core.kernels.dispatch import cpu_float
 from core.render.cube_faces import (
-    _pad_plan_cpu,
     direction_to_face_uv,
     face_uv_to_direction,
+    pad_plan_cpu,
 )
 
 FACE_NAMES: tuple[str, ...] = ("+X", "-X", "+Y", "-Y", "+Z", "-Z")
@@ -66,7 +66,7 @@ def texel_directions(
 
 @lru_cache(maxsize=16)
 def _pad_plan(resolution: int, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
-    return tuple(t.to(device) for t in _pad_plan_cpu(resolution))  # type: ignore[return-value]
+    return tuple(t.to(device) for t in pad_plan_cpu(resolution))  # type: ignore[return-value]
 
 
 def pad_cube(texels: Tensor) -> Tensor:

@@ -7,7 +7,7 @@ torch that is ~35 small ops (means, gathers, a corner ``index_copy``, a ``cat``)
 many autograd nodes on a map of a few thousand texels: 2.7 ms forward and backward on
 two cores at R = 32, all of it op overhead (the data is 70 kB). Here the forward builds
 the coarser levels in one loop and gathers the packed rows through a table built once
-per face size from ``cube_faces._pad_plan_cpu`` (each packed row one texel of one
+per face size from ``cube_faces.pad_plan_cpu`` (each packed row one texel of one
 level, or a corner's mean of three; large maps split over the kernel threads). The
 backward scatters the packed gradient onto the levels, then pushes each level's
 gradient a quarter to each of its four finer texels, coarsest first, down to level 0.
@@ -26,7 +26,7 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from core.kernels.pool import run_ranges
-from core.render.cube_faces import _pad_plan_cpu, mip_sizes
+from core.render.cube_faces import mip_sizes, pad_plan_cpu
 
 __all__ = ["packed_cube_levels"]
 
@@ -43,7 +43,7 @@ def _gather_table(resolution: int, mips: bool) -> tuple[np.ndarray, ...]:
     n_lvl = n_pack = 0
     for r in sizes:
         p = r + 2
-        src, corner_pos, corner_src = (t.numpy() for t in _pad_plan_cpu(r))
+        src, corner_pos, corner_src = (t.numpy() for t in pad_plan_cpu(r))
         s = np.zeros((6 * p * p, 3), np.int64)
         s[:, 0] = src
         c = np.ones(6 * p * p, np.int64)

@@ -7,8 +7,8 @@ that are hidden, floating or uncovered, and averages |gap|: some thirty small op
 backward, four index scatters into zeroed depth-sized buffers. Here one loop gives the
 mean and keeps each counted point's sign; the backward scatters sign / (count ·
 footprint) through the four taps' weights into one depth gradient. Same formulas and
-masks as the torch path, float64 inside (``tests/test_silhouette_compiled.py`` holds
-the value and gradient to it).
+masks as the torch path, float64 inside (``tests/test_silhouette.py``,
+``test_the_compiled_term_matches_the_torch_path``, holds the value and gradient to it).
 """
 
 from __future__ import annotations

@@ -545,7 +545,7 @@ class CpuComposite(torch.autograd.Function):
                     run_workers(_backward_worker, n_workers, args)
             # the workers' sums added and split into the four inputs' gradients, in their
             # dtypes, in one pass (nothing may keep a view of the pooled buffer)
-            widths = (2, 3, 1, n_ch)
+            widths = (_G_A - _G_MX, _G_O - _G_A, _G_F - _G_O, n_ch)  # gbuf's column groups
             parts = [
                 np.empty((n, w), store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
             ]
