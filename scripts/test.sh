@@ -6,22 +6,29 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh
-for s in scripts/services.sh scripts/browser.sh scripts/gltf_validator.sh; do
-    if [ -f "$s" ]; then bash "$s"; fi
-done
 . .venv/bin/activate
 # bytecode caches: uv installs packages without .pyc files, and an environment with
 # PYTHONDONTWRITEBYTECODE set (this machine's, CI's) then compiles ~1,250 modules from
 # source in every Python process the suite starts (servers, jobs, CLI runs: ~4 s each
 # on 2 cores). Unset here, the first import writes each cache and the rest read it.
 unset PYTHONDONTWRITEBYTECODE
+# numba kernels: compiled once into their cache before pytest, so the test workers and
+# the servers they start load them instead of each compiling the same kernels at once
+# (scripts/warm_kernels.py, ~30 s of CPU on a fresh clone). It runs while apt and npm
+# install the services and the browser below (mostly waiting on disk), not after them.
+warm_log=$(mktemp)
+python scripts/warm_kernels.py >"$warm_log" 2>&1 &
+warm_pid=$!
+for s in scripts/services.sh scripts/browser.sh scripts/gltf_validator.sh; do
+    if [ -f "$s" ]; then bash "$s"; fi
+done
 echo "== ruff"
 ruff check .
 ruff format --check .
 echo "== numba kernels"
-# compiled once into their cache here, so the test workers and the servers they start
-# load them instead of each compiling the same kernels at once (scripts/warm_kernels.py)
-python scripts/warm_kernels.py
+if ! wait "$warm_pid"; then cat "$warm_log"; echo "warm_kernels.py failed" >&2; exit 1; fi
+cat "$warm_log"
+rm -f "$warm_log"
 echo "== pytest"
 # two workers (the machine's cores), each test file on one worker so a file's fixtures
 # (servers, trained runs) are built once, longest files first (tests/file_order.py);
