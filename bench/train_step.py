@@ -18,6 +18,12 @@ All cases run in one process on the same Gaussians, side by side:
 
 Targets (issue 5, on an H100): full step ≤ 1.3 × plain step; deferred ≥ 200 FPS.
 Peak memory is CUDA's allocator peak per case, or the process's peak RSS on CPU.
+
+Timing is interleaved: each of ``--repeat`` rounds runs every case once, so a machine
+whose speed drifts minute to minute (a shared VM moved a sequential run's ratio by
+±20%) slows the plain and the full step alike. The ratios are medians of the rounds'
+own ratios, printed with their range; a range that straddles a target means the run
+cannot tell (repeat more).
 """
 
 from __future__ import annotations
@@ -25,11 +31,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import statistics
+import time
 from collections.abc import Callable
 
 import torch
 
-from bench.common import bench_camera, machine_line, median_time, peak_rss_mib
+from bench.common import bench_camera, machine_line, peak_rss_mib
 from core.config import TrainConfig
 from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
@@ -105,7 +113,6 @@ def run(args: argparse.Namespace) -> dict:
     target = torch.rand(args.size, args.size, 3, generator=torch.Generator().manual_seed(1))
     target = target.to(device)
     white = torch.ones(3, device=device)
-    sync = torch.cuda.synchronize if device.type == "cuda" else None
 
     def adam() -> None:
         for o in opts.values():
@@ -160,16 +167,13 @@ def run(args: argparse.Namespace) -> dict:
         # the plan drops L_multi where every view is masked (core/training/planner.py)
         (MASKED_STEP, lambda: full_step(multi_view=False)),
     ]
+    times = time_rounds(cases, args.warmup, args.repeat, device)
     rows = []
-    for name, fn in cases:
-        if device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(device)
-        ms = median_time(fn, warmup=args.warmup, repeat=args.repeat, sync=sync) * 1e3
-        if device.type == "cuda":
-            mem = torch.cuda.max_memory_allocated(device) / 2**20
-        else:
-            mem = peak_rss_mib()
-        rows.append({"case": name, "ms": ms, "fps": 1e3 / ms, "peak_mib": mem})
+    for name, _ in cases:
+        ms = statistics.median(times[name]["ms"])
+        rows.append({"case": name, "ms": ms, "fps": 1e3 / ms, "peak_mib": times[name]["peak_mib"]})
+    plain = times["plain step"]["ms"]
+    full, masked = (times[k]["ms"] for k in ("full step (multi-view phase)", MASKED_STEP))
     by = {r["case"]: r for r in rows}
     return {
         "device": str(device),
@@ -178,12 +182,49 @@ def run(args: argparse.Namespace) -> dict:
         "size": args.size,
         "n": args.n,
         "roughness": not args.no_roughness,
+        "rounds": args.repeat,
         "rows": rows,
-        "full_over_plain_step": by["full step (multi-view phase)"]["ms"] / by["plain step"]["ms"],
-        "masked_full_over_plain_step": by[MASKED_STEP]["ms"] / by["plain step"]["ms"],
-        "gbuffer_over_plain_render": by["G-buffer forward"]["ms"] / by["plain render"]["ms"],
+        "full_over_plain_step": paired_ratio(full, plain)["median"],
+        "masked_full_over_plain_step": paired_ratio(masked, plain)["median"],
+        "full_over_plain_range": paired_ratio(full, plain),
+        "masked_full_over_plain_range": paired_ratio(masked, plain),
+        "gbuffer_over_plain_render": paired_ratio(
+            times["G-buffer forward"]["ms"], times["plain render"]["ms"]
+        )["median"],
         "deferred_fps": by["deferred render"]["fps"],
     }
+
+
+def time_rounds(
+    cases: list[tuple[str, Callable[[], None]]], warmup: int, rounds: int, device: torch.device
+) -> dict[str, dict]:
+    """Each case's ms per round (every round runs every case once, in order) and its
+    peak memory (taken during its own warm-up runs, before the rounds mix the cases)."""
+    cuda = device.type == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    out: dict[str, dict] = {}
+    for name, fn in cases:
+        if cuda:
+            torch.cuda.reset_peak_memory_stats(device)
+        for _ in range(max(warmup, 1)):  # at least once: the memory peak needs a run
+            fn()
+        sync()
+        peak = torch.cuda.max_memory_allocated(device) / 2**20 if cuda else peak_rss_mib()
+        out[name] = {"ms": [], "peak_mib": peak}
+    for _ in range(rounds):
+        for name, fn in cases:
+            sync()
+            t0 = time.perf_counter()
+            fn()
+            sync()
+            out[name]["ms"].append(1e3 * (time.perf_counter() - t0))
+    return out
+
+
+def paired_ratio(num: list[float], den: list[float]) -> dict[str, float]:
+    """min / median / max over rounds of num[i] / den[i] (both timed in round i)."""
+    r = sorted(a / b for a, b in zip(num, den, strict=True))
+    return {"min": r[0], "median": statistics.median(r), "max": r[-1]}
 
 
 def format_table(res: dict) -> str:
@@ -197,10 +238,16 @@ def format_table(res: dict) -> str:
     ]
     for r in res["rows"]:
         lines.append(f"| {r['case']} | {r['ms']:.2f} | {r['fps']:.1f} | {r['peak_mib']:.0f} |")
+    fr, mr = res["full_over_plain_range"], res["masked_full_over_plain_range"]
     lines += [
         "",
-        f"full step / plain step: {res['full_over_plain_step']:.2f}× (target ≤ 1.3×), "
-        f"on a masked capture {res['masked_full_over_plain_step']:.2f}×; "
+        f"Medians over {res['rounds']} interleaved rounds; ratios are the median of the "
+        "rounds' own ratios [min–max].",
+        "",
+        f"full step / plain step: {res['full_over_plain_step']:.2f}× "
+        f"[{fr['min']:.2f}–{fr['max']:.2f}] (target ≤ 1.3×), "
+        f"on a masked capture {res['masked_full_over_plain_step']:.2f}× "
+        f"[{mr['min']:.2f}–{mr['max']:.2f}]; "
         f"G-buffer / plain render: {res['gbuffer_over_plain_render']:.2f}×; "
         f"deferred render: {res['deferred_fps']:.0f} FPS (target ≥ 200 on an H100)",
     ]
@@ -216,7 +263,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--size", type=int, default=800)
     ap.add_argument("--n", type=int, default=300_000)
     ap.add_argument("--envmap", type=int, default=128, help="cube face size")
-    ap.add_argument("--repeat", type=int, default=10)
+    ap.add_argument("--repeat", type=int, default=10, help="rounds (each runs every case once)")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: default)")
     ap.add_argument(

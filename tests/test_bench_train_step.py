@@ -8,7 +8,7 @@ import math
 import pytest
 
 from bench.common import bench_camera
-from bench.train_step import MASKED_STEP, format_table, neighbour_camera, run
+from bench.train_step import MASKED_STEP, format_table, neighbour_camera, paired_ratio, run
 
 
 @pytest.mark.parametrize("no_roughness", [False, True])
@@ -20,7 +20,7 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool):
         size=32,
         n=600,
         envmap=8,
-        repeat=1,
+        repeat=2,
         warmup=0,
         threads=1,
         split_threads=False,
@@ -33,6 +33,10 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool):
     assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
     assert res["masked_full_over_plain_step"] > 0
     assert "full step / plain step" in format_table(res)
+    for key in ("full_over_plain_range", "masked_full_over_plain_range"):
+        r = res[key]
+        assert r["min"] <= r["median"] <= r["max"]
+    assert res["rounds"] == 2
     assert res["roughness"] is not no_roughness  # the full model as trained, or without it
 
 
@@ -45,3 +49,11 @@ def test_neighbour_camera_keeps_the_target_in_view():
         u = c.intrinsics.fx * p[0] / p[2] + c.intrinsics.cx
         assert abs(float(u) - 16.0) < 4.0
     assert not bool((nb.world_to_cam == cam.world_to_cam).all())
+
+
+def test_ratios_pair_the_cases_round_by_round():
+    # round 2 ran at half speed: both cases slowed, their ratio in that round did not
+    r = paired_ratio([2.0, 4.0, 2.2], [1.0, 2.0, 1.0])
+    assert r == {"min": 2.0, "median": 2.0, "max": 2.2}
+    with pytest.raises(ValueError):
+        paired_ratio([1.0], [1.0, 2.0])
