@@ -279,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)
+    if args.repeat < 1 or args.warmup < 0:
+        ap.error(f"--repeat must be >= 1 and --warmup >= 0, got {args.repeat} and {args.warmup}")
     res = run(args)
     print(format_table(res))
     if args.json:

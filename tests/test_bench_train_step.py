@@ -57,3 +57,11 @@ def test_ratios_pair_the_cases_round_by_round():
     assert r == {"min": 2.0, "median": 2.0, "max": 2.2}
     with pytest.raises(ValueError):
         paired_ratio([1.0], [1.0, 2.0])
+
+
+def test_zero_rounds_is_refused_with_the_flag_named(capsys):
+    from bench.train_step import main
+
+    with pytest.raises(SystemExit):
+        main(["--device", "cpu", "--repeat", "0"])
+    assert "--repeat must be >= 1" in capsys.readouterr().err
