@@ -38,16 +38,25 @@ def median_time(fn: Callable[[], object], warmup: int = 1, repeat: int = 5, sync
     """Median wall time in seconds over ``repeat`` runs after ``warmup`` runs."""
     for _ in range(warmup):
         fn()
-    times = []
-    for _ in range(repeat):
-        if sync:
-            sync()
-        t0 = time.perf_counter()
-        fn()
-        if sync:
-            sync()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    return statistics.median(interleaved_times({"case": fn}, repeat, sync)["case"]) / 1e3
+
+
+def interleaved_times(
+    cases: dict[str, Callable[[], object]], rounds: int, sync: Callable[[], None] | None = None
+) -> dict[str, list[float]]:
+    """ms of each case in each round; every round runs every case once, in order, so
+    machine drift hits all alike (``sync``: wait for the device around each timing)."""
+    times: dict[str, list[float]] = {k: [] for k in cases}
+    for _ in range(rounds):
+        for key, fn in cases.items():
+            if sync:
+                sync()
+            t0 = time.perf_counter()
+            fn()
+            if sync:
+                sync()
+            times[key].append(1e3 * (time.perf_counter() - t0))
+    return times
 
 
 def interleaved_medians(
@@ -57,13 +66,7 @@ def interleaved_medians(
     for _ in range(warmup):
         for fn in cases.values():
             fn()
-    times: dict[str, list[float]] = {k: [] for k in cases}
-    for _ in range(repeat):
-        for key, fn in cases.items():
-            t0 = time.perf_counter()
-            fn()
-            times[key].append(time.perf_counter() - t0)
-    return {k: statistics.median(v) * 1e3 for k, v in times.items()}
+    return {k: statistics.median(v) for k, v in interleaved_times(cases, repeat).items()}
 
 
 def fast_vs_plain(

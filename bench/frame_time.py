@@ -30,8 +30,7 @@ from viewer_web.renderer import load_model, render_channel
 
 def frame_camera(size: int, fov_deg: float = 50.0) -> Camera:
     """A square view of the sphere model from outside, ``size`` pixels wide."""
-    f = 0.5 * size / math.tan(math.radians(fov_deg) / 2)
-    intr = Intrinsics(f, f, size / 2, size / 2, size, size)
+    intr = Intrinsics.from_fov_x(math.radians(fov_deg), size, size)
     return Camera.look_at((0.0, -3.0, 1.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), intr)
 
 

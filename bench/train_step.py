@@ -32,12 +32,11 @@ import argparse
 import json
 import math
 import statistics
-import time
 from collections.abc import Callable
 
 import torch
 
-from bench.common import bench_camera, machine_line, peak_rss_mib
+from bench.common import bench_camera, interleaved_times, machine_line, peak_rss_mib
 from core.config import TrainConfig
 from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
@@ -201,24 +200,18 @@ def time_rounds(
     """Each case's ms per round (every round runs every case once, in order) and its
     peak memory (taken during its own warm-up runs, before the rounds mix the cases)."""
     cuda = device.type == "cuda"
-    sync = torch.cuda.synchronize if cuda else (lambda: None)
-    out: dict[str, dict] = {}
+    peaks: dict[str, float] = {}
     for name, fn in cases:
         if cuda:
             torch.cuda.reset_peak_memory_stats(device)
         for _ in range(max(warmup, 1)):  # at least once: the memory peak needs a run
             fn()
-        sync()
-        peak = torch.cuda.max_memory_allocated(device) / 2**20 if cuda else peak_rss_mib()
-        out[name] = {"ms": [], "peak_mib": peak}
-    for _ in range(rounds):
-        for name, fn in cases:
-            sync()
-            t0 = time.perf_counter()
-            fn()
-            sync()
-            out[name]["ms"].append(1e3 * (time.perf_counter() - t0))
-    return out
+        if cuda:
+            torch.cuda.synchronize(device)
+        peaks[name] = torch.cuda.max_memory_allocated(device) / 2**20 if cuda else peak_rss_mib()
+    sync = torch.cuda.synchronize if cuda else None
+    times = interleaved_times(dict(cases), rounds, sync)
+    return {name: {"ms": times[name], "peak_mib": peaks[name]} for name, _ in cases}
 
 
 def paired_ratio(num: list[float], den: list[float]) -> dict[str, float]:
