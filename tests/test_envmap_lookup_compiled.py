@@ -65,10 +65,19 @@ def test_pixels_no_gradient_reaches_are_skipped_exactly():
 
 def test_float32_matches_and_leading_shape_is_kept():
     texels, dirs, lod = inputs(32, 128 * 128, torch.float32, seed=3)
-    grad_out = torch.randn(128 * 128, 3)
+    # its own generator: from the global one, grad_out changed with whatever test ran
+    # before on the worker, and 3 in 40 draws failed the direction check below
+    grad_out = torch.randn(128 * 128, 3, generator=torch.Generator().manual_seed(4))
     ref, new = both(texels, dirs, lod, grad_out)
-    for a, b, name in zip(ref, new, ("value", "texels", "dirs", "lod"), strict=True):
+    for a, b, name in zip(ref[:2] + ref[3:], new[:2] + new[3:], ("value", "texels", "lod"),
+                          strict=True):  # fmt: skip
         torch.testing.assert_close(b, a, rtol=2e-4, atol=2e-4, msg=name)
+    # a direction's gradient is g − d(d·g) over |v|: a small component is what is left
+    # of cancelling large ones (rows reach 160 where |v| is small), so float32 rounding
+    # is judged against the row's size, not the component's own
+    ga, gb = ref[2], new[2]
+    row = ga.norm(dim=-1, keepdim=True)
+    assert bool(((gb - ga).abs() <= 2e-4 + 2e-4 * row).all()), "dirs"
     out = sample_cube_lod(texels, dirs.view(128, 128, 3), lod.view(128, 128), compiled=True)
     assert out.shape == (128, 128, 3) and out.dtype == torch.float32
 
