@@ -49,6 +49,24 @@ typedef uint32_t vu __attribute__((vector_size(VW * 4)));
 
 static inline vf sel(vi m, vf a, vf b) { return (vf)((m & (vi)a) | (~m & (vi)b)); }
 
+/* a * b + c, fused (one rounding) where the target has the instruction. The build
+ * forbids the compiler to fuse on its own, so that the power (whose sign and size
+ * decide which pixels a Gaussian reaches) is numba's operation for operation; the
+ * exp polynomial and the sums, which decide nothing, fuse here explicitly. */
+static inline vf fmadd(vf a, vf b, vf c) {
+#if defined(__AVX512F__)
+    return (vf)_mm512_fmadd_ps((__m512)a, (__m512)b, (__m512)c);
+#elif defined(__FMA__) && defined(__AVX__)
+    return (vf)_mm256_fmadd_ps((__m256)a, (__m256)b, (__m256)c);
+#elif defined(__FMA__)
+    return (vf)_mm_fmadd_ps((__m128)a, (__m128)b, (__m128)c);
+#elif defined(__aarch64__)
+    return (vf)vfmaq_f32((float32x4_t)c, (float32x4_t)a, (float32x4_t)b);
+#else
+    return a * b + c;
+#endif
+}
+
 /* min(a, b) written as "b if a > b else a": a NaN stays NaN (as in the reference). */
 static inline vf min_keep_nan(vf a, vf b) { return sel(a > b, b, a); }
 
@@ -66,12 +84,12 @@ static inline vf exp_nonpos(vf p, float floor) {
     nf = __builtin_convertvector(n, vf);
     vf f = x - nf;
     vf y = zero + 1.5332508e-4f;
-    y = y * f + 1.3394701e-3f;
-    y = y * f + 9.6184910e-3f;
-    y = y * f + 5.5503423e-2f;
-    y = y * f + 2.4022647e-1f;
-    y = y * f + 6.9314720e-1f;
-    y = y * f + 1.0f;
+    y = fmadd(y, f, zero + 1.3394701e-3f);
+    y = fmadd(y, f, zero + 9.6184910e-3f);
+    y = fmadd(y, f, zero + 5.5503423e-2f);
+    y = fmadd(y, f, zero + 2.4022647e-1f);
+    y = fmadd(y, f, zero + 6.9314720e-1f);
+    y = fmadd(y, f, zero + 1.0f);
     vu bits = ((vu)(n + 127)) << 23;
     return y * (vf)bits;
 }
@@ -296,8 +314,11 @@ int composite_simd(int64_t w, int64_t n_workers, const float *means2d, const flo
                     last[r][v] = (take & (none + (int32_t)(i - lo + 1))) | (~take & last[r][v]);
                 }
                 vf *F_r = F + (int64_t)r * n_ch * NV;
-                for (int64_t ch = 0; ch < n_ch; ch++)
-                    for (int v = 0; v < NV; v++) F_r[ch * NV + v] += f_g[ch] * wgt[v];
+                for (int64_t ch = 0; ch < n_ch; ch++) {
+                    const vf f_ch = (vf){0} + f_g[ch];
+                    for (int v = 0; v < NV; v++)
+                        F_r[ch * NV + v] = fmadd(f_ch, wgt[v], F_r[ch * NV + v]);
+                }
             }
         }
         for (int r = 0; r < ny; r++) {
@@ -417,25 +438,26 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
                     touched = 1;
                     const vf al = sel(m, alpha, zero);
                     const vf one_m = 1.0f - al;
-                    const vf Tb = Tc[r][v] / one_m;
+                    const vf inv = 1.0f / one_m; /* one division for both uses below */
+                    const vf Tb = Tc[r][v] * inv;
                     const vf wgt = al * Tb;
                     vf gf = zero;
                     const vf *Gr = Gt + (int64_t)r * n_ch * NV + v;
                     for (int64_t ch = 0; ch < n_ch; ch++) {
                         const vf gc = Gr[ch * NV];
-                        gf += gc * f_g[ch];
-                        acc_f[ch] += wgt * gc;
+                        gf = fmadd(gc, zero + f_g[ch], gf);
+                        acc_f[ch] = fmadd(wgt, gc, acc_f[ch]);
                     }
-                    const vf d_alpha = Tb * gf + (gaT[r][v] - R[r][v]) / one_m;
-                    R[r][v] += wgt * gf;
+                    const vf d_alpha = fmadd(Tb, gf, (gaT[r][v] - R[r][v]) * inv);
+                    R[r][v] = fmadd(wgt, gf, R[r][v]);
                     Tc[r][v] = Tb;
                     const vi mc = m & ~clamped;
                     const vf d_pow = sel(mc, al * d_alpha, zero);
-                    s_mx += (a * dx[v] + b * dy) * d_pow;
-                    s_my += (c * dy + b * dx[v]) * d_pow;
-                    s_a -= 0.5f * dx[v] * dx[v] * d_pow;
-                    s_b -= dx[v] * dy * d_pow;
-                    s_c -= 0.5f * dy * dy * d_pow;
+                    s_mx = fmadd(a * dx[v] + b * dy, d_pow, s_mx);
+                    s_my = fmadd(c * dy + b * dx[v], d_pow, s_my);
+                    s_a = fmadd(-0.5f * dx[v] * dx[v], d_pow, s_a);
+                    s_b = fmadd(-dx[v] * dy, d_pow, s_b);
+                    s_c = fmadd((zero - 0.5f * dy * dy), d_pow, s_c);
                     s_o += sel(mc, G * d_alpha, zero);
                 }
             }
