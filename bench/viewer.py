@@ -138,7 +138,12 @@ def frame(ws: Any, timeout: float = 120) -> dict[str, Any]:
             return unpack_frame(msg)[0]
 
 
-def run(n: int, size: int, seconds: float, one_sided: bool = False) -> dict[str, Any]:
+def run(
+    n: int, size: int, seconds: float, one_sided: bool = False, stills: int = 9
+) -> dict[str, Any]:
+    """Serve a sphere model of ``n`` Gaussians and time it: first frame, ``seconds`` of
+    moving cameras, then ``stills`` full-resolution frames (their median and range:
+    three frames left the median to one noisy frame)."""
     with tempfile.TemporaryDirectory() as tmp:
         run_dir = Path(tmp)
         write_run(run_dir, n, one_sided)
@@ -174,9 +179,9 @@ def run(n: int, size: int, seconds: float, one_sided: bool = False) -> dict[str,
                 moving = [f for f in moving if f["reason"] == "camera"]
 
                 # Still: full resolution frames of resting cameras.
-                still_ms, still_rt = [], []
+                still_ms, still_rt, still_render, still_encode = [], [], [], []
                 seq = sent[0] + 100
-                for i in range(3):
+                for i in range(stills):
                     seq += 1
                     t = time.perf_counter()
                     ws.send(camera(seq, 1.0 + i, size, still=True))
@@ -184,6 +189,8 @@ def run(n: int, size: int, seconds: float, one_sided: bool = False) -> dict[str,
                         pass
                     still_rt.append((time.perf_counter() - t) * 1000)
                     still_ms.append(h["render_ms"] + h["encode_ms"])
+                    still_render.append(h["render_ms"])
+                    still_encode.append(h["encode_ms"])
         finally:
             server.should_exit = True
     steady = moving[len(moving) // 3 :] or moving
@@ -205,7 +212,11 @@ def run(n: int, size: int, seconds: float, one_sided: bool = False) -> dict[str,
             "median_render_ms": statistics.median(f["render_ms"] for f in steady),
         },
         "still_full_res": {
+            "frames": len(still_ms),
             "render_plus_encode_ms_median": round(statistics.median(still_ms), 1),
+            "render_plus_encode_ms_range": [round(min(still_ms), 1), round(max(still_ms), 1)],
+            "render_ms_median": round(statistics.median(still_render), 1),
+            "encode_ms_median": round(statistics.median(still_encode), 1),
             "round_trip_ms_median": round(statistics.median(still_rt), 1),
         },
     }
@@ -221,9 +232,15 @@ def main() -> None:
         help="record the discs as seen from outside, as a trained model's are: the far "
         "half is culled in every view (default: two-sided, every disc drawn)",
     )  # fmt: skip
+    ap.add_argument(
+        "--stills", type=int, default=9,
+        help="full-resolution frames of resting cameras, each at its own angle",
+    )  # fmt: skip
     a = ap.parse_args()
+    if a.stills < 1:
+        ap.error("--stills must be at least 1 (the still frame's median needs a frame)")
     configure_cpu_threads()  # as `glint serve` does
-    print(json.dumps(run(a.gaussians, a.size, a.seconds, a.one_sided), indent=2))
+    print(json.dumps(run(a.gaussians, a.size, a.seconds, a.one_sided, a.stills), indent=2))
 
 
 if __name__ == "__main__":
