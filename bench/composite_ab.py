@@ -6,8 +6,9 @@
 composite_simd.c`` (``--new`` defaults to the working tree's). Both are built with the
 project's flags and run on the same inputs: a 512² viewer frame of bench.viewer's
 sphere of flat discs and of bench.raster's random blob (forward only, as a viewer frame
-composites), and a training-size composite (the blob at 128² with 20k Gaussians and 11
-channels, forward with its backward). Each round runs both builds in an order that
+composites), and training-size composites (the blob at 128² with 20k and 70k Gaussians,
+11 channels, forward with its backward: the larger count's per-Gaussian arrays no
+longer fit the caches, as a trained object's do not). Each round runs both builds in an order that
 alternates from round to round, each twice, timing the second run: whichever build
 runs first in a round meets colder caches (that alone read as ±10% here). Ratios are
 the median of the rounds' own new/old ratios with their range, and the outputs of the
@@ -167,11 +168,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=24)
     ap.add_argument("--gaussians", type=int, default=100_000, help="of the 512² frames")
     ap.add_argument("--size", type=int, default=512)
+    ap.add_argument(
+        "--train-gaussians", type=int, nargs="+", default=[20_000, 70_000],
+        help="Gaussian counts of the 128² training composites (bench.train_step's; a "
+        "trained object's)",
+    )  # fmt: skip
     ap.add_argument("--threads", type=int, default=None, help="kernel threads (default: all)")
     ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = ap.parse_args(argv)
     if args.rounds < 1:
         ap.error("--rounds must be at least 1")
+    if min(args.train_gaussians) < 1:
+        ap.error("--train-gaussians must be positive counts")
     configure_cpu_threads(args.threads)
     with tempfile.TemporaryDirectory(prefix="glint-ab-") as tmp:
         libs = {"old": build(source_of(args.old, Path(tmp))),
@@ -183,13 +191,17 @@ def main(argv: list[str] | None = None) -> int:
         ):
             cases = {k: frame_case(lib, inputs) for k, lib in libs.items()}
             rows.append(summarise(label, *ab(cases, args.rounds)))
-        train = blob(20_000, 128, 11)
-        fwd_t, fwd_o = ab({k: training_case(lib, train, "fwd") for k, lib in libs.items()},
-                          args.rounds)  # fmt: skip
-        both_t, both_o = ab({k: training_case(lib, train, "both") for k, lib in libs.items()},
-                            args.rounds)  # fmt: skip
-        rows.append(summarise("128² training composite, forward", fwd_t, fwd_o))
-        rows.append(summarise("128² training composite, backward", both_t, both_o, fwd_t))
+        for n in args.train_gaussians:
+            train = blob(n, 128, 11)
+            fwd_t, fwd_o = ab(
+                {k: training_case(lib, train, "fwd") for k, lib in libs.items()}, args.rounds
+            )
+            both_t, both_o = ab(
+                {k: training_case(lib, train, "both") for k, lib in libs.items()}, args.rounds
+            )
+            label = f"128² training composite, {n:,} Gaussians"
+            rows.append(summarise(f"{label}, forward", fwd_t, fwd_o))
+            rows.append(summarise(f"{label}, backward", both_t, both_o, fwd_t))
     print(f"{machine_line()}; {kernel_threads()} kernel threads; old {args.old}, "
           f"new {args.new or 'working tree'}; {args.rounds} rounds")  # fmt: skip
     print()
