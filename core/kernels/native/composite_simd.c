@@ -198,6 +198,9 @@ typedef float vf4 __attribute__((vector_size(16)));
 typedef double vd8 __attribute__((vector_size(64)));
 typedef float vf8 __attribute__((vector_size(32)));
 #endif
+#if (defined(__clang__) || __GNUC__ >= 12) && !defined(GLINT_NO_SHUFFLEVECTOR)
+/* __builtin_shufflevector (GCC 12+, Clang); tests build the fallback with
+ * -DGLINT_NO_SHUFFLEVECTOR */
 static inline double hsum(vf x) {
 #if VW == 16
     const vf8 a = __builtin_shufflevector(x, x, 0, 1, 2, 3, 4, 5, 6, 7);
@@ -219,6 +222,15 @@ static inline double hsum(vf x) {
 #endif
     return s2[0] + s2[1];
 }
+#else /* older compilers: the same pairwise sums, lane by lane */
+static inline double hsum(vf x) {
+    double s[VW];
+    for (int l = 0; l < VW; l++) s[l] = (double)x[l];
+    for (int w = VW / 2; w >= 1; w /= 2)
+        for (int l = 0; l < w; l++) s[l] += s[l + w];
+    return s[0];
+}
+#endif
 
 /* Pixel boxes [x0, x1) x [y0, y1) outside which Gaussians [lo, hi) cannot reach
  * alpha >= 1/255 (mode 1: the culling ellipse's extents in geo; mode 2: the image;
