@@ -22,14 +22,13 @@ import json
 import statistics
 import subprocess
 import tempfile
-import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from bench.common import bench_camera, machine_line, random_gaussians
+from bench.common import bench_camera, interleaved_times, machine_line, random_gaussians
 from core.kernels import native_build
 from core.kernels.pool import kernel_threads
 from core.kernels.threads import configure_cpu_threads
@@ -62,10 +61,9 @@ def source_of(ref: str | None, into: Path) -> Path:
 
 
 def build(source: Path):
-    lib = native_build.load(source)
+    lib = cpu_simd.library(source=source)
     if lib is None:
         raise SystemExit(f"{source} did not build: {native_build.why_unavailable(source)}")
-    cpu_simd._set_signatures(lib)
     return lib
 
 
@@ -136,11 +134,8 @@ def ab(cases: dict[str, Callable[[], np.ndarray]], rounds: int) -> tuple[dict, d
     names = list(cases)
     for r in range(rounds):
         for name in names if r % 2 else names[::-1]:
-            for rep in range(2):
-                t0 = time.perf_counter()
-                outs[name] = cases[name]()
-                if rep:
-                    times[name].append((time.perf_counter() - t0) * 1e3)
+            outs[name] = cases[name]()  # the warm run, whose output is compared
+            times[name] += interleaved_times({name: cases[name]}, 1)[name]
     return times, outs
 
 

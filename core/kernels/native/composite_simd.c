@@ -476,7 +476,8 @@ int composite_simd_backward(int64_t w, int64_t n_workers, const float *means2d,
                 const int64_t gp = ids[i - PREFETCH_AHEAD];
                 prefetch_gaussian(gp, n_ch, box, means2d, conics, opac, floors, feats);
                 const double *row = gb + (size_t)gp * (size_t)(6 + n_ch);
-                for (int64_t k = 0; k < 6 + n_ch; k += 8) __builtin_prefetch(row + k, 1);
+                for (int64_t k = 0; k < 6 + n_ch; k += 8) /* 8 doubles: a 64-byte line */
+                    __builtin_prefetch(row + k, 1);
             }
             uint32_t rows = box_rows(box + 4 * g, tl);
             for (uint32_t m = rows; m; m &= m - 1u) /* rows whose pixels all ended earlier */

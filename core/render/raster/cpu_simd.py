@@ -45,10 +45,11 @@ _SIGNATURES = {
 }
 
 
-def library(extra_flags: tuple[str, ...] = ()) -> ctypes.CDLL | None:
+def library(extra_flags: tuple[str, ...] = (), source: Path = SOURCE) -> ctypes.CDLL | None:
     """The built kernel library (None where it cannot be built); ``extra_flags``
-    build a variant, e.g. another vector width for the tests."""
-    lib = native_build.load(SOURCE, extra_flags)
+    build a variant, e.g. another vector width for the tests, ``source`` another
+    version of the kernel (``bench.composite_ab``)."""
+    lib = native_build.load(source, extra_flags)
     if lib is not None and lib.composite_simd.argtypes is None:
         _set_signatures(lib)
     return lib
