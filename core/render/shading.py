@@ -116,9 +116,8 @@ def deferred_shade(
     bg = torch.as_tensor(background, dtype=base.dtype, device=base.device).reshape(-1)
     if bg.numel() != base.shape[-1]:
         raise ValueError(f"background must have {base.shape[-1]} values, got {bg.numel()}")
-    fill = (1.0 - alpha).unsqueeze(-1) * bg
-
     if not enabled:
+        fill = (1.0 - alpha).unsqueeze(-1) * bg
         return ShadeResult(base + fill, base, torch.zeros_like(base), w_r, None)
     if envmap is None:
         raise ValueError("deferred shading is enabled but no environment map was given")
@@ -126,8 +125,10 @@ def deferred_shade(
     tensors = (base, gbuffer.normal, w_r, alpha)
     rough = gbuffer.roughness
     if compiled and can_shade_compiled(tensors if rough is None else (*tensors, rough), envmap):
+        # the kernel composites the background itself (no image-sized fill here)
         final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough)
         return ShadeResult(final, base, specular, w_r, refl)
+    fill = (1.0 - alpha).unsqueeze(-1) * bg
     buffers = (gbuffer.normal, alpha) if rough is None else (gbuffer.normal, alpha, rough)
     if compiled and cpu_float(*buffers) and len({t.dtype for t in buffers}) == 1:
         # a training step: directions and LOD in one pass with a hand-written backward

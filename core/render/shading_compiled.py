@@ -102,18 +102,21 @@ def _shade_rows(
                 np.float64(normal[j, i, 1]),
                 np.float64(normal[j, i, 2]),
             )
-            nx = r00 * n0 + r10 * n1 + r20 * n2
-            ny = r01 * n0 + r11 * n1 + r21 * n2
-            nz = r02 * n0 + r12 * n1 + r22 * n2
             inv_d = 1.0 / math.sqrt(dx * dx + dy * dy + dz * dz)
             dx, dy, dz = dx * inv_d, dy * inv_d, dz * inv_d
-            # safe_normalize twice, as world_normals() and then reflect() apply it: a
-            # normal below 1e-12 is scaled by 1e12 and a zero normal stays 0.
-            for _ in range(2):
-                inv_n = 1.0 / math.sqrt(max(nx * nx + ny * ny + nz * nz, 1e-24))
-                nx, ny, nz = nx * inv_n, ny * inv_n, nz * inv_n
-            k = 2.0 * (dx * nx + dy * ny + dz * nz)
-            dx, dy, dz = dx - k * nx, dy - k * ny, dz - k * nz  # the reflected direction
+            # A pixel no splat reached (the background: often half a viewer frame) has a
+            # zero normal, which reflects the view ray unchanged; skip its arithmetic.
+            if n0 != 0.0 or n1 != 0.0 or n2 != 0.0:
+                nx = r00 * n0 + r10 * n1 + r20 * n2
+                ny = r01 * n0 + r11 * n1 + r21 * n2
+                nz = r02 * n0 + r12 * n1 + r22 * n2
+                # safe_normalize twice, as world_normals() and then reflect() apply it:
+                # a normal below 1e-12 is scaled by 1e12.
+                for _ in range(2):
+                    inv_n = 1.0 / math.sqrt(max(nx * nx + ny * ny + nz * nz, 1e-24))
+                    nx, ny, nz = nx * inv_n, ny * inv_n, nz * inv_n
+                k = 2.0 * (dx * nx + dy * ny + dz * nz)
+                dx, dy, dz = dx - k * nx, dy - k * ny, dz - k * nz  # the reflected direction
             refl[j, i, 0] = dx
             refl[j, i, 1] = dy
             refl[j, i, 2] = dz
