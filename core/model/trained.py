@@ -33,6 +33,7 @@ from core.render.roughness import roughness as splat_roughness
 from core.render.shading import deferred_shade
 from core.render.view_opacity import view_opacity_scale, visible_index
 from core.scene.cameras import Camera, Intrinsics
+from core.stages import stage
 
 CHECKPOINT_NAME = "checkpoint.pt"
 
@@ -241,28 +242,36 @@ class TrainedModel:
         with_depth = bool(wanted & DEPTH)
         if self._static is not None:
             st = self._static
-            cull = view_opacity_scale(
-                self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing,
-                normals=st["normals"],
-            )  # fmt: skip
-            opacities = st["opacities"] if cull is None else st["opacities"] * cull
-            # the near plane of every Gaussian, as an unfrozen render computes it
-            near = near_plane(st["means"] @ camera.R[2].to(st["means"]) + float(camera.t[2]))
-            keep = visible_index(opacities) if compact else None
+            with stage("view_opacity"):
+                cull = view_opacity_scale(
+                    self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing,
+                    normals=st["normals"],
+                )  # fmt: skip
+                opacities = st["opacities"] if cull is None else st["opacities"] * cull
+            with stage("near_plane"):
+                # the near plane of every Gaussian, as an unfrozen render computes it
+                z_cam = st["means"] @ camera.R[2].to(st["means"]) + float(camera.t[2])
+                near = near_plane(z_cam)
+            with stage("visible"):
+                keep = visible_index(opacities) if compact else None
 
-            def pick(t: Tensor | None) -> Tensor | None:
-                return t if t is None or keep is None else t.index_select(0, keep)
+                def pick(t: Tensor | None) -> Tensor | None:
+                    return t if t is None or keep is None else t.index_select(0, keep)
 
-            colors = pick(st.get("colors"))
+                colors = pick(st.get("colors"))
+                inputs = [pick(st[k]) for k in ("means", "normals", "w_r", "covariances")]
+                opacities = pick(opacities)
+                rough = pick(st.get("roughness")) if with_rough else None
             if colors is None:
-                colors = self.gaussians.colors(camera, sh_degree, subset=keep)
-            gb, _ = render_gbuffer_tensors(
-                pick(st["means"]), None, None, pick(opacities), colors, pick(st["normals"]),
-                pick(st["w_r"]), camera, covariances=pick(st["covariances"]),
-                backend=self.backend, antialiased=phase.antialiased, lowpass=phase.lowpass,
-                roughness=pick(st.get("roughness")) if with_rough else None, near=near,
-                depth=with_depth,
-            )  # fmt: skip
+                with stage("sh_colors"):
+                    colors = self.gaussians.colors(camera, sh_degree, subset=keep)
+            means, normals, w_r, covs = inputs
+            with stage("gbuffer"):
+                gb, _ = render_gbuffer_tensors(
+                    means, None, None, opacities, colors, normals, w_r, camera,
+                    covariances=covs, backend=self.backend, antialiased=phase.antialiased,
+                    lowpass=phase.lowpass, roughness=rough, near=near, depth=with_depth,
+                )  # fmt: skip
         else:
             cull = view_opacity_scale(
                 self.gaussians, camera, one_sided=phase.one_sided, grazing=phase.grazing
@@ -275,7 +284,8 @@ class TrainedModel:
         shade = None
         if wanted & SHADED:
             enabled = phase.envmap and self.envmap is not None
-            shade = deferred_shade(gb, self.envmap, bg, enabled=enabled)
+            with stage("deferred_shading"):
+                shade = deferred_shade(gb, self.envmap, bg, enabled=enabled)
         return Frame(camera, gb, shade, bg, phase.planar_depth)
 
     def summary(self) -> dict[str, Any]:
