@@ -7,8 +7,9 @@ composite_simd.c`` (``--new`` defaults to the working tree's). Both are built wi
 project's flags and run on the same inputs: a 512² viewer frame of bench.viewer's
 sphere of flat discs and of bench.raster's random blob (forward only, as a viewer frame
 composites), and training-size composites (the blob at 128² with 20k and 70k Gaussians,
-11 channels, forward with its backward: the larger count's per-Gaussian arrays no
-longer fit the caches, as a trained object's do not). Each round runs both builds in an order that
+11 channels, the forward, and the backward timed on its own after an untimed forward:
+the larger count's per-Gaussian arrays no longer fit the caches, as a trained object's
+do not). Each round runs both builds in an order that
 alternates from round to round, each twice, timing the second run: whichever build
 runs first in a round meets colder caches (that alone read as ±10% here). Ratios are
 the median of the rounds' own new/old ratios with their range, and the outputs of the
@@ -22,13 +23,14 @@ import json
 import statistics
 import subprocess
 import tempfile
+import time
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from bench.common import bench_camera, interleaved_times, machine_line, random_gaussians
+from bench.common import bench_camera, machine_line, random_gaussians
 from core.kernels import native_build
 from core.kernels.pool import kernel_threads
 from core.kernels.threads import configure_cpu_threads
@@ -92,41 +94,48 @@ def blob(n: int, size: int, channels: int):
                              bench_camera(size))  # fmt: skip
 
 
-def frame_case(lib, inputs) -> Callable[[], np.ndarray]:
+Case = Callable[[], tuple[np.ndarray, float]]  # a run: its output and the ms it timed
+
+
+def frame_case(lib, inputs) -> Case:
     args, w, h, c = inputs
 
-    def run() -> np.ndarray:
+    def run() -> tuple[np.ndarray, float]:
         out = np.zeros((h, w, c), np.float32)
+        t0 = time.perf_counter()
         cpu_simd.composite(args, kernel_threads(), out, np.ones((h, w), np.float32), lib=lib)
-        return out
+        return out, 1e3 * (time.perf_counter() - t0)
 
     return run
 
 
-def training_case(lib, inputs, part: str) -> Callable[[], np.ndarray]:
-    """Forward with last-contributor counts (part "fwd") or that and the backward (the
-    backward's own time is the difference, reported as "bwd")."""
+def training_case(lib, inputs, part: str) -> Case:
+    """Forward with last-contributor counts (part "fwd", timed) or that forward untimed
+    and then its backward, timed alone (part "bwd": a difference of two timed runs went
+    negative when the machine was busy)."""
     args, w, h, c = inputs
     rng = np.random.default_rng(3)
     g_feat = rng.standard_normal((h, w, c)).astype(np.float32)
     g_alpha = rng.standard_normal((h, w)).astype(np.float32)
     nw = kernel_threads()
 
-    def run() -> np.ndarray:
-        k = cpu_simd.SimdComposite(args, w, h, lib)
+    def run() -> tuple[np.ndarray, float]:
         out, T = np.zeros((h, w, c), np.float32), np.ones((h, w), np.float32)
         last = np.zeros((h, w), np.int32)
+        t0 = time.perf_counter()  # the forward with its culling setup, as a step runs it
+        k = cpu_simd.SimdComposite(args, w, h, lib)
         k.forward(nw, out, T, last)
         if part == "fwd":
-            return out
+            return out, 1e3 * (time.perf_counter() - t0)
         gbuf = np.zeros((nw, k.n, 6 + c))
+        t0 = time.perf_counter()
         k.backward(nw, T, last, g_feat, g_alpha, gbuf)
-        return gbuf.sum(0)
+        return gbuf.sum(0), 1e3 * (time.perf_counter() - t0)
 
     return run
 
 
-def ab(cases: dict[str, Callable[[], np.ndarray]], rounds: int) -> tuple[dict, dict]:
+def ab(cases: dict[str, Case], rounds: int) -> tuple[dict, dict]:
     """ms of "old" and "new" per round, order alternating, the second of two runs timed;
     and each build's last output."""
     times: dict[str, list[float]] = {k: [] for k in cases}
@@ -134,16 +143,13 @@ def ab(cases: dict[str, Callable[[], np.ndarray]], rounds: int) -> tuple[dict, d
     names = list(cases)
     for r in range(rounds):
         for name in names if r % 2 else names[::-1]:
-            outs[name] = cases[name]()  # the warm run, whose output is compared
-            times[name] += interleaved_times({name: cases[name]}, 1)[name]
+            outs[name] = cases[name]()[0]  # the warm run, whose output is compared
+            times[name].append(cases[name]()[1])
     return times, outs
 
 
-def summarise(label: str, times: dict, outs: dict, minus: dict | None = None) -> dict:
+def summarise(label: str, times: dict, outs: dict) -> dict:
     old, new = times["old"], times["new"]
-    if minus is not None:  # the backward alone: forward + backward less the forward
-        old = [a - b for a, b in zip(old, minus["old"], strict=True)]
-        new = [a - b for a, b in zip(new, minus["new"], strict=True)]
     ratios = [b / a for a, b in zip(old, new, strict=True)]
     scale = max(float(np.abs(outs["old"]).max()), 1e-30)
     return {
@@ -191,12 +197,12 @@ def main(argv: list[str] | None = None) -> int:
             fwd_t, fwd_o = ab(
                 {k: training_case(lib, train, "fwd") for k, lib in libs.items()}, args.rounds
             )
-            both_t, both_o = ab(
-                {k: training_case(lib, train, "both") for k, lib in libs.items()}, args.rounds
+            bwd_t, bwd_o = ab(
+                {k: training_case(lib, train, "bwd") for k, lib in libs.items()}, args.rounds
             )
             label = f"128² training composite, {n:,} Gaussians"
             rows.append(summarise(f"{label}, forward", fwd_t, fwd_o))
-            rows.append(summarise(f"{label}, backward", both_t, both_o, fwd_t))
+            rows.append(summarise(f"{label}, backward", bwd_t, bwd_o))
     print(f"{machine_line()}; {kernel_threads()} kernel threads; old {args.old}, "
           f"new {args.new or 'working tree'}; {args.rounds} rounds")  # fmt: skip
     print()
