@@ -259,13 +259,13 @@ class TrainedModel:
                     return t if t is None or keep is None else t.index_select(0, keep)
 
                 colors = pick(st.get("colors"))
-                inputs = [pick(st[k]) for k in ("means", "normals", "w_r", "covariances")]
+                keys = ("means", "normals", "w_r", "covariances")
+                means, normals, w_r, covs = (pick(st[k]) for k in keys)
                 opacities = pick(opacities)
                 rough = pick(st.get("roughness")) if with_rough else None
             if colors is None:
                 with stage("sh_colors"):
                     colors = self.gaussians.colors(camera, sh_degree, subset=keep)
-            means, normals, w_r, covs = inputs
             with stage("gbuffer"):
                 gb, _ = render_gbuffer_tensors(
                     means, None, None, opacities, colors, normals, w_r, camera,
