@@ -4,23 +4,23 @@ milliseconds per frame and as a share of it.
     python -m bench.frame_breakdown [--run RUN] [--gaussians 100000] [--size 512] \\
         [--frames 18] [--threads 2] [--markdown FILE]
 
-The frame is ``viewer_web.renderer.render_channel`` (the frozen model's render of one
-channel, then its 8-bit display encoding), then the JPEG encoding, as a still frame of
-the viewer pays them; without ``--run`` the model is ``bench.viewer``'s (a sphere of
-flat discs with an env map, recorded as seen from outside so one-sided culling drops
-the far half), seen from ``bench.viewer``'s still cameras. Stages are the
-``core.stages.stage`` ranges of the render (per-view opacity, near plane, visibility and
-gathers, SH colours, the G-buffer's features, projection, binning, compositing, deferred
-shading) and this script's ``display`` and ``jpeg``; each stage's time is its own, less
-the ranges nested in it (``bench.step_breakdown.breakdown``), and ``(outside stages)``
-is the rest of the frame. The frames are also timed without the profiler, whose ranges
-slow small operations down: the shares are the figures to read.
+The frame is the viewer's own ``viewer_web.renderer.timed_frame`` (the frozen model's
+render of one channel, its 8-bit display encoding, the JPEG) of ``bench.viewer``'s still
+camera messages; without ``--run`` the model is ``bench.viewer``'s (a sphere of flat discs
+with an env map, recorded as seen from outside so one-sided culling drops the far half).
+Stages are the ``core.stages.stage`` ranges of the render (per-view opacity, near plane,
+visibility and gathers, SH colours, the G-buffer's features, projection, binning,
+compositing, deferred shading) and the viewer's ``display`` and ``jpeg``; each stage's
+time is its own, less the ranges nested in it (``bench.step_breakdown.breakdown``), and
+``(outside stages)`` is the rest of the frame (making the camera, the frame's header).
+The frames are also timed without the profiler, whose ranges slow small operations down:
+the shares are the figures to read.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
+import json
 import statistics
 import tempfile
 import time
@@ -31,58 +31,49 @@ import torch
 from torch.profiler import ProfilerActivity, profile, record_function
 
 from bench.common import machine_line
-from bench.step_breakdown import STEP, breakdown
-from bench.viewer import write_run
+from bench.step_breakdown import RASTER_STAGES, STEP, breakdown
+from bench.viewer import camera, write_run
 from core.kernels.threads import configure_cpu_threads
-from core.model.frame import to_display
-from core.scene.cameras import Camera, Intrinsics
-from core.stages import stage
-from viewer_web.renderer import LoadedModel, encode_jpeg, load_model
-
-RASTER_STAGES = ("project", "bin", "composite")
+from viewer_web.protocol import CameraMsg, ProtocolError, parse
+from viewer_web.renderer import LoadedModel, load_model, timed_frame
 
 
-def still_cameras(size: int, count: int) -> list[Camera]:
-    """``bench.viewer``'s resting cameras: 2.2 from the origin, 40° vertical field."""
-    fy = 0.5 * size / math.tan(math.radians(20.0))
-    intr = Intrinsics(fy, fy, size / 2.0, size / 2.0, size, size)
-    return [
-        Camera.look_at(
-            (2.2 * math.cos(1.0 + i), 2.2 * math.sin(1.0 + i), 0.6), (0, 0, 0), (0, 0, 1), intr
-        )
-        for i in range(count)
-    ]
+def still_messages(size: int, count: int, channel: str = "final") -> list[CameraMsg]:
+    """``bench.viewer``'s resting cameras asking for ``channel``, validated as the viewer
+    validates a client's (a bad channel raises ``viewer_web.protocol.ProtocolError``)."""
+    msgs = []
+    for i in range(count):
+        msg = json.loads(camera(i + 1, 1.0 + i, size, still=True))
+        parsed = parse(json.dumps({**msg, "channel": channel}))
+        assert isinstance(parsed, CameraMsg)
+        msgs.append(parsed)
+    return msgs
 
 
-def frame(loaded: LoadedModel, camera: Camera, channel: str, quality: int) -> bytes:
-    """One still frame as the viewer renders and encodes it, with its stages named."""
-    with torch.no_grad():
-        rendered = loaded.model.render(camera, (channel,))
-        with stage("display"):
-            rgb = to_display(rendered.image(channel))
-    with stage("jpeg"):
-        return encode_jpeg(rgb, quality)
+def frame(loaded: LoadedModel, spec: CameraMsg, quality: int) -> bytes:
+    """One still frame at full resolution, as the viewer renders and encodes it."""
+    return timed_frame(loaded, spec, 1.0, quality)[0]
 
 
 def measure(
-    loaded: LoadedModel, cameras: list[Camera], channel: str, quality: int, warmup: int = 3
+    loaded: LoadedModel, specs: list[CameraMsg], quality: int, warmup: int = 3
 ) -> tuple[list[dict[str, Any]], float, float]:
     """(rows, frame ms unprofiled (median), frame ms under the profiler (mean))."""
-    for cam in cameras[:warmup]:
-        frame(loaded, cam, channel, quality)
+    for spec in specs[:warmup]:
+        frame(loaded, spec, quality)
     plain = []
-    for cam in cameras:
+    for spec in specs:
         t0 = time.perf_counter()
-        frame(loaded, cam, channel, quality)
+        frame(loaded, spec, quality)
         plain.append(1000.0 * (time.perf_counter() - t0))
     with profile(activities=[ProfilerActivity.CPU]) as prof:
-        for cam in cameras:
+        for spec in specs:
             with record_function(STEP):
-                frame(loaded, cam, channel, quality)
+                frame(loaded, spec, quality)
     events = list(prof.events())
     spans = [e.time_range for e in events if e.name == STEP]
     profiled = sum(s.end - s.start for s in spans) / len(spans) / 1000.0
-    rows = [r for r in breakdown(events, len(cameras)) if r["total_ms"] > 0.0]
+    rows = [r for r in breakdown(events, len(specs)) if r["total_ms"] > 0.0]
     return rows, statistics.median(plain), profiled
 
 
@@ -115,13 +106,15 @@ def main(argv: list[str] | None = None) -> int:
     a = ap.parse_args(argv)
     if a.frames < 1 or a.size < 16:
         ap.error("--frames must be at least 1 and --size at least 16")
+    try:
+        specs = still_messages(a.size, a.frames, a.channel)
+    except ProtocolError as exc:
+        ap.error(f"--channel {a.channel!r}: {exc}")
     threads = configure_cpu_threads(a.threads)
     with tempfile.TemporaryDirectory(prefix="glint-frame-") as tmp:
         run = a.run if a.run is not None else write_run(Path(tmp), a.gaussians, one_sided=True)
         loaded = load_model(run, torch.device("cpu"))
-        rows, frame_ms, profiled = measure(
-            loaded, still_cameras(a.size, a.frames), a.channel, a.quality
-        )
+        rows, frame_ms, profiled = measure(loaded, specs, a.quality)
     head = {
         "model": str(a.run) if a.run else f"bench.viewer's sphere of {a.gaussians:,} discs",
         "size": a.size, "channel": a.channel, "frames": a.frames, "threads": threads,

@@ -10,12 +10,12 @@ import torch
 
 from bench import frame_breakdown as fb
 from bench.viewer import write_run
-from viewer_web.renderer import load_model
+from viewer_web.renderer import load_model, make_camera
 
 
 def test_a_frame_is_split_into_the_renders_stages(tmp_path: Path):
     loaded = load_model(write_run(tmp_path, 3000, one_sided=True), torch.device("cpu"))
-    rows, frame_ms, profiled_ms = fb.measure(loaded, fb.still_cameras(64, 3), "final", 85, 1)
+    rows, frame_ms, profiled_ms = fb.measure(loaded, fb.still_messages(64, 3), 85, 1)
     stages = {r["stage"]: r for r in rows}
     # the frozen render's own ranges, the rasteriser's inside the G-buffer's, the encodings
     for name in (
@@ -50,6 +50,7 @@ def test_bad_arguments_are_refused(capsys):
 
 
 def test_the_still_cameras_look_at_the_origin_from_outside_the_sphere():
-    for cam in fb.still_cameras(32, 4):
+    for spec in fb.still_messages(32, 4):
+        cam = make_camera(spec, 1.0)
         assert cam.width == cam.height == 32
         assert float(cam.center.norm()) == pytest.approx(math.hypot(2.2, 0.6), rel=1e-6)

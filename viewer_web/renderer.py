@@ -29,6 +29,7 @@ from core.model.trained import CHECKPOINT_NAME, TrainedModel
 from core.render.envmap_io import cube_to_equirect
 from core.render.raster import fallback_backend
 from core.scene.cameras import Camera, Intrinsics
+from core.stages import stage
 
 log = logging.getLogger("glint.viewer")
 
@@ -186,7 +187,9 @@ def render_channel(loaded: LoadedModel, camera: Camera, channel: str) -> np.ndar
     """One channel of one view as display-ready (H, W, 3) uint8 sRGB.
 
     Only what the channel needs is computed (see ``TrainedModel.render``)."""
-    return to_display(loaded.model.render(camera, (channel,)).image(channel))
+    image = loaded.model.render(camera, (channel,)).image(channel)
+    with stage("display"):
+        return to_display(image)
 
 
 def timed_frame(
@@ -199,7 +202,8 @@ def timed_frame(
     if model.device.type == "cuda":
         torch.cuda.synchronize(model.device)
     t1 = time.perf_counter()
-    jpeg = encode_jpeg(rgb, quality)
+    with stage("jpeg"):
+        jpeg = encode_jpeg(rgb, quality)
     t2 = time.perf_counter()
     return jpeg, {
         "width": camera.width,
