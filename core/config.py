@@ -202,6 +202,14 @@ class Ablation(_Strict):
         "it is oriented; four more G-buffer channels in its phases); False: through Eq. "
         "8's full gradient, which tilts the normals the deferred shading reflects with",
     )
+    silhouette_touching: bool = Field(
+        True,
+        description="True: a silhouette ray only has to reach the surface: of the points "
+        "along its chord through the masks' hull, the term holds the one the rendered "
+        "surface comes closest to (core/training/silhouette.py); False: the chord's "
+        "middle, which over a sharp edge or a concavity hangs in the air and pulls the "
+        "surface out to it",
+    )
     roughness: bool = Field(
         True,
         description="False: every splat reflects one direction (the paper's Eq. 9, a mirror "

@@ -19,10 +19,16 @@ from core.config import PIXEL_BOX_VARIANCE, TrainConfig, saved_config
 from core.model.schedule import phase_at
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer
+from core.scene.cameras import Camera, Intrinsics
 from core.scene.synthetic import SPHERE_RADIUS, make_scene, surface_points
 from core.scene.views import Scene
 from core.training.planner import decide_silhouette, plan_scene
-from core.training.silhouette import FLOATING_PX, SilhouetteDepth, silhouette_points
+from core.training.silhouette import (
+    FLOATING_PX,
+    SilhouetteDepth,
+    SilhouettePoints,
+    silhouette_points,
+)
 
 
 @pytest.fixture(scope="module")
@@ -148,7 +154,8 @@ def test_silhouette_depth_lets_go_of_a_surface_far_behind_its_points(loose_spher
     assert pts is not None
     loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
     v = loose_sphere.train[3]
-    _, z = v.camera.project(pts.points[loss.per_view[3]])
+    assert pts.chords is not None
+    _, z = v.camera.project(pts.chords[loss.per_view[3]].reshape(-1, 3))
     far = float(z.max())  # every used point is in front of a surface at this depth
     footprint = far / v.camera.intrinsics.fx
     valid = torch.ones(v.height, v.width, dtype=torch.bool)
@@ -160,6 +167,53 @@ def test_silhouette_depth_lets_go_of_a_surface_far_behind_its_points(loose_spher
     value.backward()
     assert float(value.detach()) == 0.0
     assert behind.grad is not None and float(behind.grad.abs().sum()) == 0.0
+
+
+def _one_chord_seen_from_above(size: int = 64) -> tuple[SilhouettePoints, list[Camera]]:
+    """A silhouette ray of a side view (camera 1) along x at height 0.5, its nine chord
+    samples from x = −0.2 to 0.2, normal +z, seen by camera 0 from (0, 0, 3)."""
+    intr = Intrinsics.from_fov_x(0.6911112, size, size)
+    above = Camera.look_at([0.0, 0.0, 3.0], [0.0, 0.0, 0.0], [0.0, 1.0, 0.0], intr)
+    side = Camera.look_at([0.0, -3.0, 0.5], [0.0, 0.0, 0.5], [0.0, 0.0, 1.0], intr)
+    x = torch.linspace(-0.2, 0.2, 9, dtype=torch.float64)
+    chord = torch.stack(
+        [x, torch.zeros(9, dtype=torch.float64), torch.full((9,), 0.5, dtype=torch.float64)], -1
+    )
+    pts = SilhouettePoints(
+        chord[4:5], torch.tensor([[0.0, 0.0, 1.0]], dtype=torch.float64),
+        torch.tensor([1]), chord[None],
+    )  # fmt: skip
+    return pts, [above, side]
+
+
+def test_silhouette_depth_asks_the_surface_to_reach_the_ray_not_the_chord_middle() -> None:
+    """A silhouette ray touches the surface once and lies in front of it elsewhere: over
+    a valley the chord's middle hangs in the air, and holding the surface there pulls it
+    out. With the chord's samples the term asks only that the surface reach the ray."""
+    pts, cams = _one_chord_seen_from_above()
+    cam = cams[0]
+    footprint = 2.5 / float(cam.intrinsics.fx)
+    u = torch.arange(cam.width, dtype=torch.float64) + 0.5
+    x = (u - cam.width / 2) * footprint  # world x of each column on the plane z = 0.5
+    valley = 2.5 + 0.05 * ((0.15 - x.abs()) / 0.05).clamp(0.0, 1.0)  # ends 2.5, middle 2.55
+    depth = valley.to(torch.float32)[None, :].expand(cam.height, cam.width).contiguous()
+    valid = torch.ones(cam.height, cam.width, dtype=torch.bool)
+    touching = SilhouetteDepth(pts, cams)
+    middle = SilhouetteDepth(pts, cams, touching=False)
+    assert touching.counts() == [1, 0] and touching.samples == 9
+    for compiled in (False, True):
+        assert float(middle(0, cam, depth, valid, compiled=compiled)) == pytest.approx(
+            0.05 / footprint, rel=0.02
+        )
+        assert float(touching(0, cam, depth, valid, compiled=compiled)) < 0.02
+    # a surface behind the whole ray is pulled out to it by its nearest sample, either way
+    behind = torch.full((cam.height, cam.width), 2.53, requires_grad=True)
+    for term in (touching, middle):
+        value = term(0, cam, behind, valid)
+        assert float(value) == pytest.approx(0.03 / footprint, rel=0.02)
+    value = touching(0, cam, behind, valid)
+    value.backward()
+    assert behind.grad is not None and float(behind.grad.sum()) > 0.0
 
 
 def test_no_masks_no_silhouette_points() -> None:
@@ -180,25 +234,50 @@ def test_the_plan_decides_silhouette_points(loose_sphere: Scene) -> None:
     assert plan.silhouette.value is False and plan.silhouette.overridden
 
 
+@pytest.mark.parametrize("touching", [False, True])
 def test_silhouette_depth_keeps_each_views_taps_and_gives_the_same_loss(
-    loose_sphere: Scene,
+    loose_sphere: Scene, touching: bool
 ) -> None:
     """The points' pixel taps are built at a view's first step and kept: later steps give
-    the value and gradient the per-step lookup gave, and another camera for the same
+    the value and gradient a per-step lookup gives (of the chord's middle, or of each
+    ray's chord sample nearest the rendered surface), and another camera for the same
     view index is not served the kept taps."""
     from core.render.depth_geometry import bilinear_lookup
     from core.training.silhouette import FLOATING_PX, OCCLUDED_PX
 
     pts = silhouette_points(loose_sphere)
-    assert pts is not None
-    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    assert pts is not None and pts.chords is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train], touching=touching)
 
-    def reference(i: int, cam, depth, valid):  # the lookup each step made before
-        uv, z = cam.project(pts.points[loss.per_view[i]])
+    def reference(i: int, cam, depth, valid):  # a lookup of every point at every step
+        rays = loss.per_view[i]
+        k = pts.chords.shape[1] if touching else 1
+        where = pts.chords[rays].reshape(-1, 3) if touching else pts.points[rays]
+        uv, z = cam.project(where)
         uv, z = uv.to(depth), z.to(depth)
         d, inside = bilinear_lookup(depth, uv)
         covered, _ = bilinear_lookup(valid.to(depth), uv)
         gap = (d - z) / (z / cam.intrinsics.fx)
+        if touching:  # the sample nearest the surface, judged on 3×3 means of the depth
+            v = valid.to(depth).detach()
+            pad = torch.nn.functional.pad
+            num = sum(
+                pad(depth.detach() * v, (1, 1, 1, 1))[i : i + v.shape[0], j : j + v.shape[1]]
+                for i in range(3)
+                for j in range(3)
+            )
+            den = sum(
+                pad(v, (1, 1, 1, 1))[i : i + v.shape[0], j : j + v.shape[1]]
+                for i in range(3)
+                for j in range(3)
+            )
+            mean, _ = bilinear_lookup(num / den.clamp_min(1e-6), uv)
+            near = (mean - z) / (z / cam.intrinsics.fx)
+            seen = inside & (covered > 0.999) & (near > -OCCLUDED_PX)
+            rank = torch.where(seen, near, torch.full_like(near, math.inf)).reshape(-1, k)
+            keep = torch.isfinite(rank.min(1).values)
+            pick = (torch.arange(len(rays)) * k + rank.argmin(1))[keep]
+            gap, inside, covered = gap[pick], inside[pick], covered[pick]
         ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
         return gap.abs()[ok].mean()
 

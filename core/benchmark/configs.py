@@ -25,6 +25,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "central_normals": {"same_surface_normals": False},
     "all_angles": {"facing_depth": False},
     "sil_turns_normals": {"silhouette_holds_normals": False},
+    "sil_middle": {"silhouette_touching": False},
     "no_mask_loss": {"mask_coverage": False},
     "paper": {
         "silhouette": False,
@@ -60,6 +61,7 @@ LABELS = {
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
     "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
+    "sil_middle": "silhouette term at each hull chord's middle (not where the ray touches)",
     "no_mask_loss": "w/o the halo term (coverage fitted through the colours only)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, same-surface depth normals, facing-only depth losses, the "
@@ -80,6 +82,7 @@ TABLE_ORDER = (
     "central_normals",
     "all_angles",
     "sil_turns_normals",
+    "sil_middle",
     "no_mask_loss",
     "paper",
     "full",

@@ -256,7 +256,10 @@ class Trainer:
                 False, "no silhouette ray touches the visual hull", dec.evidence, dec.overridden
             )
             return
-        self.silhouette = SilhouetteDepth(pts, [v.camera for v in self.scene.train])
+        self.silhouette = SilhouetteDepth(
+            pts, [v.camera for v in self.scene.train],
+            touching=self.cfg.ablation.silhouette_touching,
+        )  # fmt: skip
         counts = self.silhouette.counts()
         dec.evidence = {
             **dec.evidence,
