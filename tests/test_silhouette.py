@@ -25,6 +25,7 @@ from core.scene.views import Scene
 from core.training.planner import decide_silhouette, plan_scene
 from core.training.silhouette import (
     FLOATING_PX,
+    OCCLUDED_PX,
     SilhouetteDepth,
     SilhouettePoints,
     silhouette_points,
@@ -333,3 +334,34 @@ def test_the_compiled_term_matches_the_torch_path(loose_sphere: Scene, dtype) ->
     value = loss(7, v.camera, far, valid, compiled=True)
     value.backward()
     assert float(value.detach()) == 0.0 and not far.grad.any()
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_compiled_nearest_samples_match_the_torch_path(loose_sphere: Scene, dtype) -> None:
+    """core.training.silhouette_compiled.nearest_samples_compiled (3×3 means read only at
+    the taps) against SilhouetteDepth._nearest_samples (the whole image averaged): the
+    same sample of every ray, over noisy depth with holes in its coverage and a view
+    where part of the surface hides the chords."""
+    from core.training.silhouette_compiled import nearest_samples_compiled
+
+    pts = silhouette_points(loose_sphere)
+    assert pts is not None
+    loss = SilhouetteDepth(pts, [v.camera for v in loose_sphere.train])
+    gen = torch.Generator().manual_seed(4)
+    for i in (0, 3, 7):
+        v = loose_sphere.train[i]
+        cam = v.camera
+        depth = (2.5 + 0.3 * torch.rand(v.height, v.width, generator=gen)).to(dtype)
+        if i == 7:
+            depth[: v.height // 2] = 0.5  # hides every chord sample there
+        valid = torch.rand(v.height, v.width, generator=gen) > 0.1
+        taps, z = loss._taps(i, cam, depth)
+        focal = float(cam.intrinsics.fx)
+        want = loss._nearest_samples(taps, z, depth, valid, focal)
+        got = nearest_samples_compiled(depth, valid, taps, z, focal, loss.samples, OCCLUDED_PX)
+        assert len(want) > 20
+        if dtype == torch.float64:
+            assert torch.equal(got, want)
+        else:  # float32 means in torch, float64 in the kernel: ties may break apart
+            assert len(got) == len(want)
+            assert float((got == want).double().mean()) > 0.99

@@ -273,8 +273,9 @@ class SilhouetteDepth:
         return taps, z
 
     def _touching(
-        self, taps: BilinearTaps, z: Tensor, depth: Tensor, valid: Tensor, focal: float
-    ) -> tuple[BilinearTaps, Tensor]:
+        self, taps: BilinearTaps, z: Tensor, depth: Tensor, valid: Tensor, focal: float,
+        compiled: bool,
+    ) -> tuple[BilinearTaps, Tensor]:  # fmt: skip
         """Each ray's chord sample nearest the rendered surface (smallest gap among the
         samples the term would count or that lie behind it), as the taps and depth of
         one point per ray.
@@ -289,6 +290,21 @@ class SilhouetteDepth:
         among them is the one pixel noise brought nearest, which let teapot_gold and
         spot_plastic settle 0.1 px behind their rays (docs/benchmarks.md).
         """
+        if compiled:
+            from core.training.silhouette_compiled import nearest_samples_compiled
+
+            pick = nearest_samples_compiled(depth, valid, taps, z, focal, self.samples, OCCLUDED_PX)
+        else:
+            pick = self._nearest_samples(taps, z, depth, valid, focal)
+        sub = BilinearTaps(
+            taps.width, taps.i00[pick], taps.fx[pick], taps.fy[pick], taps.inside[pick]
+        )
+        return sub, z[pick]
+
+    def _nearest_samples(
+        self, taps: BilinearTaps, z: Tensor, depth: Tensor, valid: Tensor, focal: float
+    ) -> Tensor:
+        """The torch reference of ``nearest_samples_compiled``: indices into the taps."""
         with torch.no_grad():
             covered = taps.sample(valid.to(depth))
             d = taps.sample(_local_mean(depth.detach(), valid))
@@ -297,11 +313,7 @@ class SilhouetteDepth:
             gap = torch.where(ok, gap, torch.full_like(gap, math.inf)).reshape(-1, self.samples)
             best = gap.min(dim=1)
             rays = torch.isfinite(best.values).nonzero()[:, 0]
-            pick = rays * self.samples + best.indices[rays]
-        sub = BilinearTaps(
-            taps.width, taps.i00[pick], taps.fx[pick], taps.fy[pick], taps.inside[pick]
-        )
-        return sub, z[pick]
+            return rays * self.samples + best.indices[rays]
 
     def __call__(
         self, view_index: int, camera: Camera, depth: Tensor, valid: Tensor,
@@ -313,10 +325,10 @@ class SilhouetteDepth:
         if self.per_view[view_index].numel() == 0:
             return depth.sum() * 0.0
         taps, z = self._taps(view_index, camera, depth)
-        if self.samples > 1:
-            taps, z = self._touching(taps, z, depth, valid, float(camera.intrinsics.fx))
         if compiled is None:
             compiled = cpu_float(depth)
+        if self.samples > 1:
+            taps, z = self._touching(taps, z, depth, valid, float(camera.intrinsics.fx), compiled)
         if compiled:
             from core.training.silhouette_compiled import silhouette_gap_compiled
 

@@ -21,7 +21,7 @@ from torch.autograd.function import once_differentiable
 
 from core.render.depth_geometry import BilinearTaps
 
-__all__ = ["silhouette_gap_compiled"]
+__all__ = ["nearest_samples_compiled", "silhouette_gap_compiled"]
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -108,3 +108,71 @@ def silhouette_gap_compiled(
     (−``occluded``, ``floating``); 0 (with zero gradient) when none is. Differentiable
     in ``depth`` (H, W), a CPU float tensor."""
     return _SilhouetteGap.apply(depth, valid, taps, z, focal, occluded, floating)
+
+
+@njit(nogil=True, cache=True)
+def _local_mean(flat, cover, height, width, out):  # pragma: no cover - numba
+    """out: the mean of the covered depth over each pixel's 3×3 neighbourhood (0 where
+    none is covered), as ``silhouette._local_mean``; box sums by rows, then columns."""
+    num_r = np.empty(height * width, np.float64)
+    den_r = np.empty(height * width, np.float64)
+    for y in range(height):
+        row = y * width
+        for x in range(width):
+            n, d = 0.0, 0.0
+            for xx in range(max(x - 1, 0), min(x + 2, width)):
+                c = np.float64(cover[row + xx])
+                n += np.float64(flat[row + xx]) * c
+                d += c
+            num_r[row + x], den_r[row + x] = n, d
+    for y in range(height):
+        for x in range(width):
+            n, d = 0.0, 0.0
+            for yy in range(max(y - 1, 0), min(y + 2, height)):
+                n += num_r[yy * width + x]
+                d += den_r[yy * width + x]
+            out[y * width + x] = n / d if d > 0.0 else 0.0
+
+
+@njit(nogil=True, cache=True)
+def _nearest(
+    flat, cover, height, width, i00, fxs, fys, inside, z, focal, samples, occluded, pick
+):  # pragma: no cover - numba
+    """pick[r]: the flat index of ray r's sample with the smallest gap on the 3×3 means
+    among those inside, covered and not hidden; −1 where none is."""
+    mean = np.empty(height * width, np.float64)
+    _local_mean(flat, cover, height, width, mean)
+    for r in range(pick.shape[0]):
+        best, arg = np.inf, -1
+        for k in range(r * samples, (r + 1) * samples):
+            if not inside[k]:
+                continue
+            fx, fy, i = np.float64(fxs[k]), np.float64(fys[k]), i00[k]
+            if not _tap(cover, i, width, fx, fy) > 0.999:
+                continue
+            zk = np.float64(z[k])
+            gap = (_tap(mean, i, width, fx, fy) - zk) / (zk / focal)
+            if gap > -occluded and gap < best:
+                best, arg = gap, k
+        pick[r] = arg
+
+
+def nearest_samples_compiled(
+    depth: Tensor, valid: Tensor, taps: BilinearTaps, z: Tensor, focal: float,
+    samples: int, occluded: float,
+) -> Tensor:  # fmt: skip
+    """Indices (into the taps) of each ray's chord sample nearest the rendered surface,
+    for the rays that have one: ``SilhouetteDepth._touching``'s choice in one pass
+    (torch's ``avg_pool2d`` for the 3×3 means took 0.5 ms at 128² and 22 ms at 800² on
+    one thread)."""
+    flat = depth.detach().contiguous().reshape(-1).numpy()
+    cover = valid.detach().to(depth.dtype).contiguous().reshape(-1).numpy()
+    pick = np.empty(z.shape[0] // samples, np.int64)
+    _nearest(
+        flat, cover, depth.shape[0], depth.shape[1], taps.i00.contiguous().numpy(),
+        taps.fx.contiguous().numpy(), taps.fy.contiguous().numpy(),
+        taps.inside.contiguous().numpy(), z.detach().contiguous().numpy(), focal, samples,
+        occluded, pick,
+    )  # fmt: skip
+    out = torch.from_numpy(pick)
+    return out[out >= 0]
