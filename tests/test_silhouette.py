@@ -26,6 +26,7 @@ from core.training.planner import decide_silhouette, plan_scene
 from core.training.silhouette import (
     FLOATING_PX,
     OCCLUDED_PX,
+    TOUCH_MARGIN_PX,
     SilhouetteDepth,
     SilhouettePoints,
     silhouette_points,
@@ -207,6 +208,14 @@ def test_silhouette_depth_asks_the_surface_to_reach_the_ray_not_the_chord_middle
             0.05 / footprint, rel=0.02
         )
         assert float(touching(0, cam, depth, valid, compiled=compiled)) < 0.02
+    # a valley shallower than TOUCH_MARGIN_PX is the surface's noise, not air under the
+    # chord: the middle stands for the ray, as without the samples
+    shallow = 2.5 + 0.4 * TOUCH_MARGIN_PX * footprint * ((0.15 - x.abs()) / 0.05).clamp(0.0, 1.0)
+    depth = shallow.to(torch.float32)[None, :].expand(cam.height, cam.width).contiguous()
+    for compiled in (False, True):
+        want = float(middle(0, cam, depth, valid, compiled=compiled))
+        assert want == pytest.approx(0.4 * TOUCH_MARGIN_PX, rel=0.02)
+        assert float(touching(0, cam, depth, valid, compiled=compiled)) == pytest.approx(want)
     # a surface behind the whole ray is pulled out to it by its nearest sample, either way
     behind = torch.full((cam.height, cam.width), 2.53, requires_grad=True)
     for term in (touching, middle):
@@ -276,8 +285,11 @@ def test_silhouette_depth_keeps_each_views_taps_and_gives_the_same_loss(
             near = (mean - z) / (z / cam.intrinsics.fx)
             seen = inside & (covered > 0.999) & (near > -OCCLUDED_PX)
             rank = torch.where(seen, near, torch.full_like(near, math.inf)).reshape(-1, k)
-            keep = torch.isfinite(rank.min(1).values)
-            pick = (torch.arange(len(rays)) * k + rank.argmin(1))[keep]
+            best = rank.min(1)
+            keep = torch.isfinite(best.values)
+            middle = rank[:, k // 2] <= best.values + TOUCH_MARGIN_PX  # the middle, if near
+            index = torch.where(middle, torch.full_like(best.indices, k // 2), best.indices)
+            pick = (torch.arange(len(rays)) * k + index)[keep]
             gap, inside, covered = gap[pick], inside[pick], covered[pick]
         ok = inside & (covered > 0.999) & (gap > -OCCLUDED_PX) & (gap < FLOATING_PX)
         return gap.abs()[ok].mean()
@@ -358,7 +370,9 @@ def test_the_compiled_nearest_samples_match_the_torch_path(loose_sphere: Scene, 
         taps, z = loss._taps(i, cam, depth)
         focal = float(cam.intrinsics.fx)
         want = loss._nearest_samples(taps, z, depth, valid, focal)
-        got = nearest_samples_compiled(depth, valid, taps, z, focal, loss.samples, OCCLUDED_PX)
+        got = nearest_samples_compiled(
+            depth, valid, taps, z, focal, loss.samples, OCCLUDED_PX, TOUCH_MARGIN_PX
+        )
         assert len(want) > 20
         if dtype == torch.float64:
             assert torch.equal(got, want)

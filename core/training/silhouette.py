@@ -58,6 +58,13 @@ FLOATING_PX = 3.0
 # Points along each silhouette ray's hull chord that the term looks at for where the ray
 # touches the surface (the one the rendered surface comes closest to).
 CHORD_SAMPLES = 9
+# The chord's middle stands for its ray unless the rendered surface comes this many
+# footprints nearer the ray at another sample: the depth's own noise along a smooth
+# surface (sphere_mirror: the middle's 3×3-mean gap exceeds the chord's smallest by
+# 0.07 px at the 90th percentile). Below it, the smallest gap is the noise's pick and
+# the surface settled that far behind its rays (sphere_mirror CD×10² 0.457 → 0.508 at
+# 0, 0.457 at 0.25; teapot_gold and spot_plastic gain most at 0; docs/benchmarks.md).
+TOUCH_MARGIN_PX = 0.25
 
 
 def _local_mean(depth: Tensor, valid: Tensor) -> Tensor:
@@ -277,8 +284,8 @@ class SilhouetteDepth:
         compiled: bool,
     ) -> tuple[BilinearTaps, Tensor]:  # fmt: skip
         """Each ray's chord sample nearest the rendered surface (smallest gap among the
-        samples the term would count or that lie behind it), as the taps and depth of
-        one point per ray.
+        samples the term would count or that lie behind it; the middle one unless that
+        is TOUCH_MARGIN_PX nearer), as the taps and depth of one point per ray.
 
         Why the nearest: a silhouette ray grazes the object, so the surface touches it
         once and lies behind it everywhere else. Over a sharp edge or a concavity the
@@ -293,7 +300,9 @@ class SilhouetteDepth:
         if compiled:
             from core.training.silhouette_compiled import nearest_samples_compiled
 
-            pick = nearest_samples_compiled(depth, valid, taps, z, focal, self.samples, OCCLUDED_PX)
+            pick = nearest_samples_compiled(
+                depth, valid, taps, z, focal, self.samples, OCCLUDED_PX, TOUCH_MARGIN_PX
+            )
         else:
             pick = self._nearest_samples(taps, z, depth, valid, focal)
         sub = BilinearTaps(
@@ -312,8 +321,11 @@ class SilhouetteDepth:
             ok = taps.inside & (covered > 0.999) & (gap > -OCCLUDED_PX)
             gap = torch.where(ok, gap, torch.full_like(gap, math.inf)).reshape(-1, self.samples)
             best = gap.min(dim=1)
+            middle = self.samples // 2
+            keep = gap[:, middle] <= best.values + TOUCH_MARGIN_PX
+            index = torch.where(keep, torch.full_like(best.indices, middle), best.indices)
             rays = torch.isfinite(best.values).nonzero()[:, 0]
-            return rays * self.samples + best.indices[rays]
+            return rays * self.samples + index[rays]
 
     def __call__(
         self, view_index: int, camera: Camera, depth: Tensor, valid: Tensor,

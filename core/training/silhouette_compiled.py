@@ -136,14 +136,29 @@ def _local_mean(flat, cover, height, width, out):  # pragma: no cover - numba
 
 @njit(nogil=True, cache=True)
 def _nearest(
-    flat, cover, height, width, i00, fxs, fys, inside, z, focal, samples, occluded, pick
+    flat,
+    cover,
+    height,
+    width,
+    i00,
+    fxs,
+    fys,
+    inside,
+    z,
+    focal,
+    samples,
+    occluded,
+    margin,
+    pick,
 ):  # pragma: no cover - numba
     """pick[r]: the flat index of ray r's sample with the smallest gap on the 3×3 means
-    among those inside, covered and not hidden; −1 where none is."""
+    among those inside, covered and not hidden, unless the middle sample is one of them
+    and no more than ``margin`` footprints farther; −1 where none is."""
     mean = np.empty(height * width, np.float64)
     _local_mean(flat, cover, height, width, mean)
+    middle = samples // 2
     for r in range(pick.shape[0]):
-        best, arg = np.inf, -1
+        best, arg, at_middle = np.inf, -1, np.inf
         for k in range(r * samples, (r + 1) * samples):
             if not inside[k]:
                 continue
@@ -152,14 +167,20 @@ def _nearest(
                 continue
             zk = np.float64(z[k])
             gap = (_tap(mean, i, width, fx, fy) - zk) / (zk / focal)
-            if gap > -occluded and gap < best:
+            if not gap > -occluded:
+                continue
+            if k - r * samples == middle:
+                at_middle = gap
+            if gap < best:
                 best, arg = gap, k
+        if arg >= 0 and at_middle <= best + margin:
+            arg = r * samples + middle
         pick[r] = arg
 
 
 def nearest_samples_compiled(
     depth: Tensor, valid: Tensor, taps: BilinearTaps, z: Tensor, focal: float,
-    samples: int, occluded: float,
+    samples: int, occluded: float, margin: float,
 ) -> Tensor:  # fmt: skip
     """Indices (into the taps) of each ray's chord sample nearest the rendered surface,
     for the rays that have one: ``SilhouetteDepth._touching``'s choice in one pass
@@ -172,7 +193,7 @@ def nearest_samples_compiled(
         flat, cover, depth.shape[0], depth.shape[1], taps.i00.contiguous().numpy(),
         taps.fx.contiguous().numpy(), taps.fy.contiguous().numpy(),
         taps.inside.contiguous().numpy(), z.detach().contiguous().numpy(), focal, samples,
-        occluded, pick,
+        occluded, margin, pick,
     )  # fmt: skip
     out = torch.from_numpy(pick)
     return out[out >= 0]
