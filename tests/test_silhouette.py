@@ -379,3 +379,18 @@ def test_the_compiled_nearest_samples_match_the_torch_path(loose_sphere: Scene, 
         else:  # float32 means in torch, float64 in the kernel: ties may break apart
             assert len(got) == len(want)
             assert float((got == want).double().mean()) > 0.99
+
+
+def test_chords_get_about_one_sample_per_footprint() -> None:
+    """chord_samples: odd (a middle sample), one per footprint along 90% of the chords,
+    within [CHORD_SAMPLES, CHORD_SAMPLES_MAX]; silhouette_points uses it."""
+    from core.training.silhouette import CHORD_SAMPLES, CHORD_SAMPLES_MAX, chord_samples
+
+    assert chord_samples(torch.empty(0)) == CHORD_SAMPLES
+    assert chord_samples(torch.full((100,), 2.0)) == CHORD_SAMPLES  # short chords
+    lengths = torch.cat([torch.full((95,), 13.5), torch.full((5,), 40.0)])
+    assert chord_samples(lengths) == 15  # ceil(13.5) + 1 = 15 samples, 14 gaps of < 1 px
+    assert chord_samples(torch.full((10,), 16.0)) == 17
+    assert chord_samples(torch.full((10,), 15.2)) == 17
+    assert chord_samples(torch.full((10,), 14.5)) == 17  # 16 -> odd 17
+    assert chord_samples(torch.full((10,), 500.0)) == CHORD_SAMPLES_MAX

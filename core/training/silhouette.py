@@ -56,8 +56,13 @@ OCCLUDED_PX = 3.0
 # measured on six rendered scenes, CD −0.4% to −3% on each (docs/benchmarks.md).
 FLOATING_PX = 3.0
 # Points along each silhouette ray's hull chord that the term looks at for where the ray
-# touches the surface (the one the rendered surface comes closest to).
+# touches the surface (the one the rendered surface comes closest to): about one per
+# pixel footprint along 90% of the chords, at least CHORD_SAMPLES and at most
+# CHORD_SAMPLES_MAX (memory: every view caches the taps of all its rays' samples).
 CHORD_SAMPLES = 9
+CHORD_SAMPLES_MAX = 33
+
+
 # The chord's middle stands for its ray unless the rendered surface comes this many
 # footprints nearer the ray at another sample: the depth's own noise along a smooth
 # surface (sphere_mirror: the middle's 3×3-mean gap exceeds the chord's smallest by
@@ -65,6 +70,16 @@ CHORD_SAMPLES = 9
 # the surface settled that far behind its rays (sphere_mirror CD×10² 0.457 → 0.508 at
 # 0, 0.457 at 0.25; teapot_gold and spot_plastic gain most at 0; docs/benchmarks.md).
 TOUCH_MARGIN_PX = 0.25
+
+
+def chord_samples(length_px: Tensor) -> int:
+    """Samples per chord: about one per pixel footprint along 90% of the chords (their
+    lengths ``length_px`` in footprints of the view they come from), odd so that one is
+    the middle, from CHORD_SAMPLES to CHORD_SAMPLES_MAX."""
+    if length_px.numel() == 0:
+        return CHORD_SAMPLES
+    n = math.ceil(float(torch.quantile(length_px.float(), 0.9))) + 1
+    return min(max(n, CHORD_SAMPLES), CHORD_SAMPLES_MAX) | 1
 
 
 def _local_mean(depth: Tensor, valid: Tensor) -> Tensor:
@@ -212,7 +227,12 @@ def silhouette_points(
         O, D, torch.cat(hi_out), torch.cat(hi_in), scene, min_fraction, bisections
     )
     points = O + D * (0.5 * (t_in + t_out))[:, None]
-    s = torch.linspace(0, 1, CHORD_SAMPLES, dtype=torch.float64)
+    src = torch.cat(source)
+    focal = torch.tensor([float(scene.train[int(i)].camera.intrinsics.fx) for i in src.unique()])
+    fx = focal[torch.searchsorted(src.unique(), src)].to(torch.float64)
+    s = torch.linspace(
+        0, 1, chord_samples((t_out - t_in) * fx / (0.5 * (t_in + t_out))), dtype=torch.float64
+    )
     along = t_in[:, None] + (t_out - t_in)[:, None] * s[None, :]
     chords = O[:, None, :] + D[:, None, :] * along[..., None]
     return SilhouettePoints(points, torch.cat(normals), torch.cat(source), chords)
