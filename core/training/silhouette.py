@@ -228,14 +228,15 @@ def silhouette_points(
     )
     points = O + D * (0.5 * (t_in + t_out))[:, None]
     src = torch.cat(source)
-    focal = torch.tensor([float(scene.train[int(i)].camera.intrinsics.fx) for i in src.unique()])
-    fx = focal[torch.searchsorted(src.unique(), src)].to(torch.float64)
-    s = torch.linspace(
-        0, 1, chord_samples((t_out - t_in) * fx / (0.5 * (t_in + t_out))), dtype=torch.float64
-    )
+    views = src.unique()  # sorted
+    focal = torch.tensor(
+        [float(scene.train[int(i)].camera.intrinsics.fx) for i in views], dtype=torch.float64
+    )[torch.searchsorted(views, src)]
+    length_px = (t_out - t_in) / (0.5 * (t_in + t_out) / focal)  # in its view's footprints
+    s = torch.linspace(0, 1, chord_samples(length_px), dtype=torch.float64)
     along = t_in[:, None] + (t_out - t_in)[:, None] * s[None, :]
     chords = O[:, None, :] + D[:, None, :] * along[..., None]
-    return SilhouettePoints(points, torch.cat(normals), torch.cat(source), chords)
+    return SilhouettePoints(points, torch.cat(normals), src, chords)
 
 
 def _rim_normals(camera: Camera, dirs: Tensor, outward: Tensor) -> Tensor:
@@ -304,8 +305,9 @@ class SilhouetteDepth:
         compiled: bool,
     ) -> tuple[BilinearTaps, Tensor]:  # fmt: skip
         """Each ray's chord sample nearest the rendered surface (smallest gap among the
-        samples the term would count or that lie behind it; the middle one unless that
-        is TOUCH_MARGIN_PX nearer), as the taps and depth of one point per ray.
+        samples the term would count or that lie behind it; the middle one unless the
+        nearest is TOUCH_MARGIN_PX nearer than it), as the taps and depth of one point
+        per ray.
 
         Why the nearest: a silhouette ray grazes the object, so the surface touches it
         once and lies behind it everywhere else. Over a sharp edge or a concavity the
