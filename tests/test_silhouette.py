@@ -253,7 +253,6 @@ def test_silhouette_depth_keeps_each_views_taps_and_gives_the_same_loss(
     ray's chord sample nearest the rendered surface), and another camera for the same
     view index is not served the kept taps."""
     from core.render.depth_geometry import bilinear_lookup
-    from core.training.silhouette import FLOATING_PX, OCCLUDED_PX
 
     pts = silhouette_points(loose_sphere)
     assert pts is not None and pts.chords is not None
@@ -383,7 +382,7 @@ def test_the_compiled_nearest_samples_match_the_torch_path(loose_sphere: Scene, 
 
 def test_chords_get_about_one_sample_per_footprint() -> None:
     """chord_samples: odd (a middle sample), one per footprint along 90% of the chords,
-    within [CHORD_SAMPLES, CHORD_SAMPLES_MAX]; silhouette_points uses it."""
+    within [CHORD_SAMPLES, CHORD_SAMPLES_MAX]."""
     from core.training.silhouette import CHORD_SAMPLES, CHORD_SAMPLES_MAX, chord_samples
 
     assert chord_samples(torch.empty(0)) == CHORD_SAMPLES

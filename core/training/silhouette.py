@@ -265,10 +265,9 @@ class SilhouetteDepth:
         # touching: each ray's chord samples, of which every step keeps the one the
         # rendered surface comes closest to (the ray touches the surface there); off,
         # or without chords, the chord's middle stands for its ray.
-        use = touching and pts.chords is not None
-        self.samples = int(pts.chords.shape[1]) if use and pts.chords is not None else 1
         self.points = pts.points
-        self._along = pts.chords if use else None
+        self._along = pts.chords if touching else None
+        self.samples = 1 if self._along is None else int(self._along.shape[1])
         self._cache: dict[tuple[Any, ...], tuple[Camera, BilinearTaps, Tensor]] = {}
         cos_min = math.cos(math.radians(FACING_DEG))
         self.per_view: list[Tensor] = []
