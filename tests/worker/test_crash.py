@@ -34,6 +34,11 @@ def _default(name: str) -> str:
     return str(DEFAULTS[name].default)
 
 
+# Long enough that the runner cannot train from the iteration a test sees to the end
+# before the kill lands (a CI run saw a 60-iteration job reach its end in that window).
+RUN_ITERATIONS = 400
+
+
 def _resumed_from(log: str, job_id: str) -> list[int]:
     return [int(m) for m in re.findall(rf"job {job_id}: resumed from iteration (\d+)", log)]
 
@@ -116,7 +121,7 @@ def test_killed_worker_job_leaves_running_within_30s_and_resumes_from_its_checkp
     """The only worker dies mid-training; a supervisor starts another one at once. Every
     reaper (the API's and the new worker's) runs with the shipped timings."""
     (a,) = workers.ensure("solo-a")
-    job_id = submit(client, scene_id, iterations=60, checkpoint_every=10)
+    job_id = submit(client, scene_id, iterations=RUN_ITERATIONS, checkpoint_every=10)
     wait_iteration(client, job_id, 12)  # the checkpoint at 10 is written
     assert _broker(redis_server.url)["unacked"] == 1  # acks_late: held while it runs
     a.kill()
@@ -143,12 +148,12 @@ def test_killed_worker_job_leaves_running_within_30s_and_resumes_from_its_checkp
 
     done = wait_state(client, job_id, timeout=60)
     assert done["state"] == "succeeded", done["error"]
-    assert done["iteration"] == 60 and done["attempts"] == 2 and done["error"] is None
+    assert done["iteration"] == RUN_ITERATIONS and done["attempts"] == 2 and done["error"] is None
     b.wait_ready()
     (resumed,) = _resumed_from(b.log(), job_id)
-    assert 10 <= resumed < 60  # from its checkpoint, not from scratch
+    assert 10 <= resumed < RUN_ITERATIONS  # from its checkpoint, not from scratch
     its = _metrics_iterations(server.settings.store_root, job_id)
-    assert its == sorted(set(its)) and its[-1] == 60
+    assert its == sorted(set(its)) and its[-1] == RUN_ITERATIONS
     # the dead worker's delivery was dropped, the new one acknowledged: nothing left
     wait_for(lambda: _broker(redis_server.url) == {"unacked": 0, "index": 0, "queue": 0}, 10)
 
@@ -282,7 +287,7 @@ def test_killed_embedded_runner_is_requeued_on_restart_and_resumes(
 ) -> None:
     key = serve.start().key()
     with serve.client(key) as c:
-        job_id = submit(c, ready_scene(c, scene), iterations=60, checkpoint_every=10)
+        job_id = submit(c, ready_scene(c, scene), iterations=RUN_ITERATIONS, checkpoint_every=10)
         wait_iteration(c, job_id, 12)
     serve.kill()
     serve.start()  # recovery on start: this process is the only runner
@@ -295,11 +300,11 @@ def test_killed_embedded_runner_is_requeued_on_restart_and_resumes(
         ), seen["error"]
         done = wait_state(c, job_id, timeout=60)
     assert done["state"] == "succeeded", done["error"]
-    assert done["iteration"] == 60 and done["attempts"] == 2
+    assert done["iteration"] == RUN_ITERATIONS and done["attempts"] == 2
     (resumed,) = _resumed_from(serve.log(), job_id)
-    assert 10 <= resumed < 60
+    assert 10 <= resumed < RUN_ITERATIONS
     its = _metrics_iterations(serve.root / "store", job_id)
-    assert its == sorted(set(its)) and its[-1] == 60
+    assert its == sorted(set(its)) and its[-1] == RUN_ITERATIONS
 
 
 @pytest.mark.slow
