@@ -69,7 +69,8 @@ def test_embedded_job_runs_niced_in_a_child_whose_death_requeues_it(
     srv = LiveServer(settings, None).start()
     try:
         with srv.client(srv.new_key("embedded")) as c:
-            job_id = submit(c, ready_scene(c, scene), iterations=30, outputs={"mesh": False})
+            # long enough that it cannot finish between the iteration seen and the kill
+            job_id = submit(c, ready_scene(c, scene), iterations=400, outputs={"mesh": False})
             wait_iteration(c, job_id, 12)
             pid = _runner_pid(srv, job_id)
             assert pid != os.getpid()
@@ -79,10 +80,10 @@ def test_embedded_job_runs_niced_in_a_child_whose_death_requeues_it(
             assert seen
             done = wait_state(c, job_id, timeout=90)
             assert done["state"] == "succeeded", done["error"]
-            assert done["iteration"] == 30 and done["attempts"] == 2
+            assert done["iteration"] == 400 and done["attempts"] == 2
             assert _runner_pid(srv, job_id) not in (pid, os.getpid())
     finally:
         srv.stop()
     metrics = settings.store_root / "jobs" / job_id / "run" / "metrics.jsonl"
     its = [json.loads(line)["iteration"] for line in metrics.read_text().splitlines() if line]
-    assert its == sorted(set(its)) and its[-1] == 30
+    assert its == sorted(set(its)) and its[-1] == 400
