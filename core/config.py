@@ -302,6 +302,15 @@ class TrainConfig(_Strict):
         "integrates (3DGS uses 0.3; wider filters blur silhouettes outwards and training "
         "then shrinks the surface to match them)",
     )
+    splat_order: Literal["centre", "slab"] = Field(
+        "centre",
+        description="order splats are composited in: 'centre', by centre depth (3DGS, every "
+        "backend); 'slab', by centre depth rounded up to slabs two median splat sizes "
+        "thick, index order within a slab, so a surface's colours and normals are not "
+        "weighted toward the splats displaced toward the camera (cpu and reference "
+        "backends; an experiment: images and normals better on the dev scenes, Chamfer "
+        "distance mixed, docs/benchmarks.md)",
+    )
     envmap_resolution: int | Literal["auto"] = Field(
         "auto",
         description="cube face size in texels; auto: the paper's 128 at its focal length "

@@ -271,6 +271,7 @@ class TrainedModel:
                     means, None, None, opacities, colors, normals, w_r, camera,
                     covariances=covs, backend=self.backend, antialiased=phase.antialiased,
                     lowpass=phase.lowpass, roughness=rough, near=near, depth=with_depth,
+                    slab_order=phase.slab_order,
                 )  # fmt: skip
         else:
             cull = view_opacity_scale(
@@ -279,7 +280,7 @@ class TrainedModel:
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,
-                with_roughness=with_rough, depth=with_depth,
+                with_roughness=with_rough, depth=with_depth, slab_order=phase.slab_order,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

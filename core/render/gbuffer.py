@@ -3,6 +3,7 @@ geometric losses need (paper Sect. 4.1, Eq. 5, 6, 8)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from functools import cached_property
 from typing import TYPE_CHECKING
@@ -225,6 +226,24 @@ def geometry_depth(gb: GBuffer, planar: bool) -> tuple[Tensor, Tensor]:
     return gb.center_depth, gb.alpha > MIN_ALPHA
 
 
+def order_slab(scales: Tensor | None, covariances: Tensor | None) -> float | None:
+    """Depth slab of ``TrainConfig.splat_order = 'slab'``: twice the median of the splats'
+    largest extents (σ, world units), so the splats of one stretch of surface share a
+    slab and are composited in index order, whatever their centres' depth along a
+    tilted surface (None: no splats). With centre order the splats displaced toward the
+    camera come first and weigh most, and colours and normals lean toward them."""
+    if scales is not None:
+        extent = scales.detach().amax(-1)
+    elif covariances is not None:
+        extent = torch.diagonal(covariances.detach(), dim1=-2, dim2=-1).amax(-1).clamp_min(0).sqrt()
+    else:
+        return None
+    if extent.numel() == 0:
+        return None
+    h = 2.0 * float(extent.median())
+    return h if h > 0 and math.isfinite(h) else None
+
+
 def render_gbuffer_tensors(
     means: Tensor,
     quats: Tensor | None,
@@ -246,6 +265,7 @@ def render_gbuffer_tensors(
     roughness: Tensor | None = None,
     held_plane: bool = False,
     depth: bool = True,
+    slab_order: bool = False,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -257,7 +277,8 @@ def render_gbuffer_tensors(
     are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
-    screen-space filter added to each splat (``TrainConfig.lowpass_2d``).
+    screen-space filter added to each splat (``TrainConfig.lowpass_2d``). ``slab_order``
+    composites in depth slabs of :func:`order_slab` (``TrainConfig.splat_order``).
 
     ``held_plane`` splats four more channels, last: the normal and D again, n̄ and n̄·μ
     with the splats' normals detached (``GBuffer.normal_held``, ``plane_dist_held``). A
@@ -296,6 +317,7 @@ def render_gbuffer_tensors(
         absgrad=absgrad,
         antialiased=antialiased,
         eps2d=lowpass,
+        order_slab=order_slab(scales, covariances) if slab_order else None,
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

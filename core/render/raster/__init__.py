@@ -163,6 +163,7 @@ def rasterize(
     tile_size: int = 16,
     absgrad: bool = False,
     antialiased: bool = False,
+    order_slab: float | None = None,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
@@ -171,6 +172,8 @@ def rasterize(
     replaces quats/scales (full-covariance ablation and tests). ``absgrad`` (CUDA
     backend only) also accumulates AbsGS's absolute screen gradient. ``antialiased``
     scales each opacity by the low-pass compensation (``Projected.compensation``).
+    ``order_slab`` (world units): composite in slabs of centre depth, index order
+    within one (``TrainConfig.splat_order``; not on gsplat, which sorts by itself).
     """
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
@@ -179,6 +182,11 @@ def rasterize(
             f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}"
         )
     name = resolve_backend(backend, means.device)
+    if order_slab is not None and name in PIPELINES:
+        raise BackendUnavailableError(
+            f"splat_order 'slab' needs the cpu or reference backend; '{name}' composites "
+            "in its own centre-depth order (set splat_order: centre)"
+        )
     if name in PIPELINES:
         return PIPELINES[name](
             means, quats, scales, opacities, features, camera, covariances=covariances,
@@ -203,8 +211,9 @@ def rasterize(
             proj = project_gaussians(means, covariances, camera, near=near, far=far, eps2d=eps2d)
     with stage("bin"):
         bins = bin_gaussians(
-            proj.means2d, proj.depths, _bin_radii(proj.radii, opacities), W, H, tile_size
-        )
+            proj.means2d, proj.depths, _bin_radii(proj.radii, opacities), W, H, tile_size,
+            slab=order_slab,
+        )  # fmt: skip
     fn = BACKENDS[name][1]
     if antialiased and proj.compensation is not None:
         opacities = opacities * proj.compensation

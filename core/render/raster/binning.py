@@ -51,13 +51,30 @@ def tile_ranges(
     return x0, x1, y0, y1
 
 
+def slab_depths(depths: Tensor, slab: float) -> Tensor:
+    """The sort key of slab order: each positive depth rounded up to a multiple of
+    ``slab``, so Gaussians in one slab tie and keep their index order (the stable sorts
+    below); zero and negative depths (never visible) stay as they are."""
+    return torch.where(depths > 0, (torch.floor(depths / slab) + 1.0) * slab, depths)
+
+
 def bin_gaussians(
-    means2d: Tensor, depths: Tensor, radii: Tensor, width: int, height: int, tile_size: int = 16
+    means2d: Tensor,
+    depths: Tensor,
+    radii: Tensor,
+    width: int,
+    height: int,
+    tile_size: int = 16,
+    *,
+    slab: float | None = None,
 ) -> TileBins:
     """Per-tile, depth-sorted Gaussian lists; a compiled counting sort on the CPU.
 
     Both paths give identical lists (tested); the torch one also serves CUDA tensors.
+    ``slab``: sort by :func:`slab_depths` instead of the depth itself.
     """
+    if slab is not None:
+        depths = slab_depths(depths.detach(), slab)
     if means2d.device.type == "cpu":
         return _bin_gaussians_cpu(means2d, depths, radii, width, height, tile_size)
     return bin_gaussians_torch(means2d, depths, radii, width, height, tile_size)
