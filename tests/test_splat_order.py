@@ -14,6 +14,7 @@ from core.render.raster import bin_gaussians, covariances_from, project_gaussian
 from core.render.raster.binning import bin_gaussians_torch, slab_depths
 from core.scene.cameras import Camera, Intrinsics
 from tests.gsplat_twin import twin_as_cuda  # noqa: F401  (fixture)
+from tests.helpers import rot_y
 
 
 def _camera() -> Camera:
@@ -26,9 +27,7 @@ def _tilted_pair() -> tuple[torch.Tensor, ...]:
     The pixel ray through the plane's point between them sees both equally."""
     t = 0.05
     means = torch.tensor([[t, 0.0, 3.0 + t], [-t, 0.0, 3.0 - t]], dtype=torch.float64)
-    h = torch.tensor(0.3826834323650898, dtype=torch.float64)  # sin(22.5°): 45° about y
-    q = torch.stack([torch.cos(torch.asin(h)), torch.zeros(()), -h, torch.zeros(())])
-    quats = q.to(torch.float64).expand(2, 4).clone()
+    quats = rot_y(-45.0).expand(2, 4).clone()  # normal (−1, 0, 1)/√2: the plane z = 3 + x
     scales = torch.tensor([[0.2, 0.2, 1e-4]] * 2, dtype=torch.float64)
     op = torch.tensor([0.6, 0.6], dtype=torch.float64)
     feats = torch.tensor([[1.0, 0.0], [0.0, 1.0]], dtype=torch.float64)  # red, blue
