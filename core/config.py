@@ -302,14 +302,16 @@ class TrainConfig(_Strict):
         "integrates (3DGS uses 0.3; wider filters blur silhouettes outwards and training "
         "then shrinks the surface to match them)",
     )
-    splat_order: Literal["centre", "slab"] = Field(
+    splat_order: Literal["centre", "slab", "plane"] = Field(
         "centre",
         description="order splats are composited in: 'centre', by centre depth (3DGS, every "
         "backend); 'slab', by centre depth rounded up to slabs two median splat sizes "
         "thick, index order within a slab, so a surface's colours and normals are not "
-        "weighted toward the splats displaced toward the camera (cpu and reference "
-        "backends; an experiment: images and normals better on the rendered dev scenes, "
-        "Chamfer distance mixed, a real photo capture 0.3 dB worse; docs/benchmarks.md)",
+        "weighted toward the splats displaced toward the camera (an experiment: images and "
+        "normals better on the rendered dev scenes, Chamfer distance mixed, a real photo "
+        "capture 0.3 dB worse); 'plane', each pixel by where its ray meets the splats' "
+        "planes (core/render/raster/plane_order.py). 'slab' and 'plane' need the cpu or "
+        "reference backend (docs/benchmarks.md)",
     )
     envmap_resolution: int | Literal["auto"] = Field(
         "auto",

@@ -49,7 +49,7 @@ class Phase:
     one_sided: bool = False  # cull splats seen from behind (core.render.orientation)
     grazing: bool = False  # learned edge-on opacity fade (core.render.grazing)
     lowpass: float = 0.3  # px² added to each splat's 2D covariance (TrainConfig.lowpass_2d)
-    slab_order: bool = False  # composite in depth slabs (TrainConfig.splat_order)
+    splat_order: str = "centre"  # compositing order (TrainConfig.splat_order)
 
 
 @dataclass(frozen=True)
@@ -134,5 +134,5 @@ def phase_at(
         one_sided=ab.one_sided,
         grazing=ab.grazing_opacity,
         lowpass=cfg.lowpass_2d,
-        slab_order=cfg.splat_order == "slab",
+        splat_order=cfg.splat_order,
     )

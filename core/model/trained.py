@@ -271,7 +271,7 @@ class TrainedModel:
                     means, None, None, opacities, colors, normals, w_r, camera,
                     covariances=covs, backend=self.backend, antialiased=phase.antialiased,
                     lowpass=phase.lowpass, roughness=rough, near=near, depth=with_depth,
-                    slab_order=phase.slab_order,
+                    splat_order=phase.splat_order,
                 )  # fmt: skip
         else:
             cull = view_opacity_scale(
@@ -280,7 +280,7 @@ class TrainedModel:
             gb, _ = render_gbuffer(
                 self.gaussians, camera, sh_degree=sh_degree, backend=self.backend,
                 antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=cull,
-                with_roughness=with_rough, depth=with_depth, slab_order=phase.slab_order,
+                with_roughness=with_rough, depth=with_depth, splat_order=phase.splat_order,
             )  # fmt: skip
         shade = None
         if wanted & SHADED:

@@ -265,7 +265,7 @@ def render_gbuffer_tensors(
     roughness: Tensor | None = None,
     held_plane: bool = False,
     depth: bool = True,
-    slab_order: bool = False,
+    splat_order: str = "centre",
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -277,8 +277,9 @@ def render_gbuffer_tensors(
     are Eq. 6 normals (any sign: they are flipped toward the camera here). ``near``
     (world units) defaults to :func:`near_plane` of this view, so the same scene in
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
-    screen-space filter added to each splat (``TrainConfig.lowpass_2d``). ``slab_order``
-    composites in depth slabs of :func:`order_slab` (``TrainConfig.splat_order``).
+    screen-space filter added to each splat (``TrainConfig.lowpass_2d``). ``splat_order``
+    (``TrainConfig.splat_order``): 'slab' composites in depth slabs of
+    :func:`order_slab`, 'plane' each pixel in the order its ray meets the splats' planes.
 
     ``held_plane`` splats four more channels, last: the normal and D again, n̄ and n̄·μ
     with the splats' normals detached (``GBuffer.normal_held``, ``plane_dist_held``). A
@@ -317,7 +318,8 @@ def render_gbuffer_tensors(
         absgrad=absgrad,
         antialiased=antialiased,
         eps2d=lowpass,
-        order_slab=order_slab(scales, covariances) if slab_order else None,
+        order_slab=order_slab(scales, covariances) if splat_order == "slab" else None,
+        plane_order=splat_order == "plane",
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

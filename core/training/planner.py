@@ -327,7 +327,7 @@ def probe_view_dependence(
             render_gbuffer(
                 gaussians, v.camera, sh_degree=0, backend=cfg.backend,
                 antialiased=cfg.antialiased, lowpass=cfg.lowpass_2d, with_roughness=False,
-                slab_order=cfg.splat_order == "slab",
+                splat_order=cfg.splat_order,
             )[0]
             for v in (vi, vj)
         )  # fmt: skip

@@ -134,7 +134,7 @@ def forward_view(
             gaussians, view_camera, sh_degree=phase.sh_degree, backend=backend, absgrad=absgrad,
             antialiased=phase.antialiased, lowpass=phase.lowpass, opacity_scale=opacity_scale,
             normals=normals, with_roughness=phase.envmap and envmap is not None,
-            held_plane=held_plane, slab_order=phase.slab_order,
+            held_plane=held_plane, splat_order=phase.splat_order,
         )  # fmt: skip
     with stage("deferred_shading"):
         shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
@@ -496,7 +496,7 @@ class Trainer:
                         antialiased=phase.antialiased, lowpass=phase.lowpass,
                         opacity_scale=cull_n, normals=normals, with_roughness=False,
                         geometry_only=True,  # read for its depth and normals only
-                        slab_order=phase.slab_order,
+                        splat_order=phase.splat_order,
                     )  # fmt: skip
                 with stage("depth"):
                     d_n, v_n = geometry_depth(gb_n, phase.planar_depth)

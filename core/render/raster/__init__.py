@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from torch import Tensor
@@ -164,6 +165,7 @@ def rasterize(
     absgrad: bool = False,
     antialiased: bool = False,
     order_slab: float | None = None,
+    plane_order: bool = False,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
@@ -174,6 +176,8 @@ def rasterize(
     scales each opacity by the low-pass compensation (``Projected.compensation``).
     ``order_slab`` (world units): composite in slabs of centre depth, index order
     within one (``TrainConfig.splat_order``; not on gsplat, which sorts by itself).
+    ``plane_order``: each pixel composites its splats in the order their planes meet
+    its ray (``core.render.raster.plane_order``; cpu and reference backends only).
     """
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
@@ -182,9 +186,10 @@ def rasterize(
             f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}"
         )
     name = resolve_backend(backend, means.device)
-    if order_slab is not None and name in PIPELINES:
+    if (order_slab is not None or plane_order) and name in PIPELINES:
+        which = "plane" if plane_order else "slab"
         raise BackendUnavailableError(
-            f"splat_order 'slab' needs the cpu or reference backend; '{name}' composites "
+            f"splat_order '{which}' needs the cpu or reference backend; '{name}' composites "
             "in its own centre-depth order (set splat_order: centre)"
         )
     if name in PIPELINES:
@@ -215,6 +220,10 @@ def rasterize(
             slab=order_slab,
         )  # fmt: skip
     fn = BACKENDS[name][1]
+    if plane_order:
+        keys = plane_keys(means, quats, scales, camera, covariances)
+        plane_fn = rasterize_cpu_plane if name == "cpu" else rasterize_reference_plane
+        fn = partial(plane_fn, order=keys)
     if antialiased and proj.compensation is not None:
         opacities = opacities * proj.compensation
     with stage("composite"):
@@ -236,6 +245,11 @@ def _bin_radii(radii: Tensor, opacities: Tensor) -> Tensor:
 
 
 from core.render.raster import cpu as _cpu_backend  # noqa: E402,F401  registers "cpu"
+from core.render.raster.plane_order import (  # noqa: E402  (needs the cpu backend's kernels)
+    plane_keys,
+    rasterize_cpu_plane,
+    rasterize_reference_plane,
+)
 from core.render.raster.projection_compiled import project_compiled  # noqa: E402
 
 PROJECTORS["cpu"] = project_compiled

@@ -1,0 +1,521 @@
+"""Per-pixel plane order (``TrainConfig.splat_order = 'plane'``): each pixel composites
+its splats in the order in which their planes meet its ray.
+
+Why. Tile lists are sorted by centre depth, one order for every pixel of a tile. Along
+a tilted surface the splats of one stretch of surface overlap at a pixel with centres
+at different depths, so the one whose centre lies toward the camera comes first and
+weighs most wherever it reaches, even where its own plane lies behind its neighbours'.
+Colours and normals then lean toward the splats displaced toward the camera (measured:
+the slab order, which removes the centre order inside a surface, made images and
+normals better on most dev scenes; docs/benchmarks.md, issue 36). A planar splat's
+place along a pixel's ray is where its plane meets the ray, so this order sorts each
+pixel's contributors by that depth (StopThePop sorts 3D Gaussians per pixel by their
+density maximum along the ray, which is the same point for a flat one).
+
+What. Per splat: its plane in camera space (unit normal ``n``, the axis of its smallest
+scale; ``d = n·μ``), its centre depth ``z`` and a reach ``h`` (three times its largest
+scale). On the ray through pixel centre (u, v), ``r = ((u - cx)/fx, (v - cy)/fy, 1)``,
+the plane lies at camera depth ``d / (n·r)``, clamped to ``[z - h, z + h]`` (an
+edge-on splat's plane meets the ray arbitrarily far away; where the splat has any
+alpha its plane is within its reach). Ties (equal keys) keep the tile's centre order.
+The order is piecewise constant, so it carries no gradient: the weights are the usual
+``alpha_i Π_{j before i} (1 - alpha_j)`` in that order, early termination included.
+
+The torch reference (:func:`rasterize_reference_plane`) sorts per pixel with a stable
+argsort; the numba kernels (pixel-major: each pixel gathers its contributors from the
+tile list, insertion-sorts them and composites) are tested against it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from core.kernels.pool import (
+    kernel_threads,
+    run_ranges,
+    run_workers,
+    scratch_zeros,
+    store_dtype,
+    zeros_touched,
+)
+from core.render.raster.binning import TileBins
+from core.render.raster.cpu import (
+    _G_A,
+    _G_F,
+    _G_MX,
+    _G_O,
+    _GEO_HX,
+    _GEO_HY,
+    _compute_dtype,
+    _np,
+    _reduce_split_range,
+    _row_span,
+    _Setup,
+    _span,
+)
+from core.render.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
+from core.render.rotations import normalize_quats, quat_to_rotmat
+from core.scene.cameras import Camera
+
+try:
+    from numba import njit
+except ImportError:  # pragma: no cover - numba is a declared dependency
+
+    def njit(*_args, **_kwargs):  # type: ignore[no-redef]
+        return lambda fn: fn
+
+
+__all__ = ["PlaneKeys", "plane_keys", "rasterize_cpu_plane", "rasterize_reference_plane"]
+
+# A splat's plane is searched for within this many of its largest standard deviations
+# of its centre along the ray (its alpha is below 1/255 beyond about 3.3 σ).
+REACH_SIGMAS = 3.0
+
+
+@dataclass
+class PlaneKeys:
+    """What the per-pixel order needs: ``planes`` (N, 6) float64 rows
+    (n_x, n_y, n_z, d, z, h) in camera space, and the pinhole intrinsics."""
+
+    planes: Tensor
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+
+    def rays(self, u: Tensor, v: Tensor) -> tuple[Tensor, Tensor]:
+        """Camera-ray x and y slopes of pixel-centre coordinates (float64)."""
+        return (u.to(torch.float64) - self.cx) / self.fx, (v.to(torch.float64) - self.cy) / self.fy
+
+    def keys(self, ids: Tensor, rx: Tensor, ry: Tensor) -> Tensor:
+        """(P, K) depth along each pixel's ray (rx, ry: (P,)) of the planes ``ids`` (K,)."""
+        p = self.planes[ids]
+        nx, ny, nz, d, z, h = (p[:, k][None, :] for k in range(6))
+        ndot = nx * rx[:, None] + ny * ry[:, None] + nz
+        t = d / ndot
+        t = torch.where(torch.isfinite(t), t, z.expand_as(t))
+        return torch.minimum(torch.maximum(t, z - h), z + h)
+
+
+def plane_keys(
+    means: Tensor,
+    quats: Tensor | None,
+    scales: Tensor | None,
+    camera: Camera,
+    covariances: Tensor | None = None,
+) -> PlaneKeys:
+    """Each splat's camera-space plane, centre depth and reach (no gradient)."""
+    with torch.no_grad():
+        if quats is not None and scales is not None:
+            R = quat_to_rotmat(normalize_quats(quats.detach().to(torch.float64)))
+            s = scales.detach().to(torch.float64)
+            n_world = torch.gather(R, 2, s.argmin(-1)[:, None, None].expand(-1, 3, 1))[..., 0]
+            reach = REACH_SIGMAS * s.amax(-1)
+        elif covariances is not None:
+            evals, evecs = torch.linalg.eigh(covariances.detach().to(torch.float64))
+            n_world = evecs[..., 0]
+            reach = REACH_SIGMAS * evals[..., -1].clamp_min(0.0).sqrt()
+        else:
+            raise ValueError("plane order needs quats and scales, or covariances")
+        Rc = camera.R.to(torch.float64)
+        tc = camera.t.to(torch.float64)
+        mu = means.detach().to(torch.float64) @ Rc.T + tc
+        n = n_world @ Rc.T
+        d = (n * mu).sum(-1)
+        planes = torch.cat([n, d[:, None], mu[:, 2:3], reach[:, None]], dim=1).contiguous()
+    i = camera.intrinsics
+    return PlaneKeys(planes, float(i.fx), float(i.fy), float(i.cx), float(i.cy))
+
+
+# ---------------------------------------------------------------------------------------
+# torch reference
+# ---------------------------------------------------------------------------------------
+
+
+def rasterize_reference_plane(
+    proj: Projected,
+    opacities: Tensor,
+    features: Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    order: PlaneKeys,
+) -> tuple[Tensor, Tensor]:
+    """(H, W, C) features and (H, W) alpha, each pixel composited in plane order.
+
+    Plain autograd over dense (pixels × tile list) tensors: the oracle for small
+    scenes, not for training."""
+    dtype, device = features.dtype, features.device
+    C = features.shape[1]
+    ts = bins.tile_size
+    img = torch.zeros(height * width, C, dtype=dtype, device=device)
+    alpha_img = torch.zeros(height * width, dtype=dtype, device=device)
+    offsets = bins.offsets.tolist()
+    opac = opacities.reshape(-1)
+    for ty in range(bins.tiles_y):
+        for tx in range(bins.tiles_x):
+            t = ty * bins.tiles_x + tx
+            lo, hi = offsets[t], offsets[t + 1]
+            if hi == lo:
+                continue
+            us = torch.arange(tx * ts, min(tx * ts + ts, width), device=device)
+            vs = torch.arange(ty * ts, min(ty * ts + ts, height), device=device)
+            vv, uu = torch.meshgrid(vs, us, indexing="ij")
+            uu, vv = uu.reshape(-1), vv.reshape(-1)
+            pix = torch.stack([uu, vv], dim=-1).to(dtype) + 0.5
+            ids = bins.gauss_ids[lo:hi].long()
+            d = pix[:, None, :] - proj.means2d[ids][None, :, :]
+            dx, dy = d[..., 0], d[..., 1]
+            a, b, c = (proj.conics[ids, k] for k in range(3))
+            power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+            alpha = torch.clamp(opac[ids] * torch.exp(power.clamp_max(0.0)), max=ALPHA_MAX)
+            keep = (power <= 0) & (alpha >= ALPHA_MIN)
+            alpha = torch.where(keep, alpha, torch.zeros_like(alpha))
+            rx, ry = order.rays(pix[:, 0], pix[:, 1])
+            perm = torch.sort(order.keys(ids, rx, ry), dim=1, stable=True).indices
+            alpha = alpha.gather(1, perm)
+            one_minus = 1.0 - alpha
+            T_after = torch.cumprod(one_minus, dim=1)
+            T_before = T_after / one_minus
+            included = T_after >= T_MIN
+            w = torch.where(included, alpha * T_before, torch.zeros_like(alpha))
+            f = features[ids][perm]  # (P, K, C)
+            out = (w[..., None] * f).sum(1)
+            T = torch.where(included, one_minus, torch.ones_like(one_minus)).prod(dim=1)
+            idx = vv * width + uu
+            img = img.index_copy(0, idx, out)
+            alpha_img = alpha_img.index_copy(0, idx, 1.0 - T)
+    return img.reshape(height, width, C), alpha_img.reshape(height, width)
+
+
+# ---------------------------------------------------------------------------------------
+# numba kernels (pixel-major)
+# ---------------------------------------------------------------------------------------
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _contributor_lists(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+    mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, fill,
+):  # fmt: skip  # pragma: no cover - numba
+    """The contributors (alpha ≥ 1/255) of each pixel p of the tile as tile-entry indices
+    ``cand_i[start[p]:start[p + 1]]``, sorted by plane depth (stable: ties keep the tile's
+    order). Gaussian-major over the entries with the compiled backend's culling
+    ellipses (a culling only: every visited pixel is tested with the reference formula).
+    ``fill=False`` only counts: ``start`` then holds the offsets and the total is
+    returned, so the caller can size ``cand_i``/``cand_key``; ``fill=True`` fills them."""
+    half, a_min, a_max = consts[0], consts[2], consts[3]
+    npix = tile_size * tile_size
+    if not fill:
+        start[:] = 0
+    for i in range(lo, hi):
+        g = gauss_ids[i]
+        m = mode[g]
+        if m == 0:
+            continue
+        geo_g = geo[g]
+        mxd = np.float64(means2d[g, 0])
+        myd = np.float64(means2d[g, 1])
+        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
+        if c0 >= c1:
+            continue
+        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
+        mx, my = means2d[g, 0], means2d[g, 1]
+        a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
+        for py in range(r0, r1):
+            q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
+            dy = ys[py] - my
+            for px in range(q0, q1):
+                dx = xs[px] - mx
+                power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
+                if not (power <= 0):
+                    continue
+                alpha = o * math.exp(power)
+                if alpha > a_max:
+                    alpha = a_max
+                if not (alpha >= a_min):
+                    continue
+                p = (py - y0) * tile_size + (px - x0)
+                if not fill:
+                    start[p + 1] += 1
+                    continue
+                ndot = planes[g, 0] * rx[px - x0] + planes[g, 1] * ry[py - y0] + planes[g, 2]
+                key = planes[g, 3] / ndot
+                z, h = planes[g, 4], planes[g, 5]
+                if not math.isfinite(key):
+                    key = z
+                key = min(max(key, z - h), z + h)
+                # insertion into the pixel's sorted run (entries arrive in tile order)
+                j = start[p + 1]
+                s0 = begin[p]
+                while j > s0 and cand_key[j - 1] > key:
+                    cand_key[j] = cand_key[j - 1]
+                    cand_i[j] = cand_i[j - 1]
+                    j -= 1
+                cand_key[j] = key
+                cand_i[j] = i
+                start[p + 1] += 1
+    if not fill:
+        for p in range(npix):
+            start[p + 1] += start[p]
+        total = start[npix]
+        # filling counts each run's end up again from its beginning
+        for p in range(npix):
+            begin[p] = start[p]
+        for p in range(npix):
+            start[p + 1] = begin[p]
+        return total
+    return start[npix]
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _tile_order(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+    mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+):  # fmt: skip  # pragma: no cover - numba
+    """Count, size and fill the tile's per-pixel contributor runs (see
+    :func:`_contributor_lists`); returns the candidate arrays (grown when needed) and
+    ``start`` with ``cand_i[start[p]:start[p + 1]]`` the run of pixel p."""
+    for px in range(x0, x1):
+        rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
+    for py in range(y0, y1):
+        ry[py - y0] = (np.float64(ys[py]) - intr[3]) / intr[1]
+    total = _contributor_lists(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+        mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, False,
+    )  # fmt: skip
+    if total > cand_i.shape[0]:
+        cand_i = np.empty(2 * total, np.int64)
+        cand_key = np.empty(2 * total, np.float64)
+    _contributor_lists(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+        mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, True,
+    )  # fmt: skip
+    return cand_i, cand_key
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _forward_worker(
+    w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
+    xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
+):  # fmt: skip  # pragma: no cover - numba
+    """Tiles w, w + n_workers, ...: each pixel's contributors in plane order, composited
+    front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
+    contributors composited, in that order."""
+    height, width, n_ch = out_feat.shape
+    n_tiles = offsets.shape[0] - 1
+    half, one, a_max, t_min = consts[0], consts[1], consts[3], consts[4]
+    npix = tile_size * tile_size
+    start = np.zeros(npix + 1, np.int64)
+    begin = np.zeros(npix, np.int64)
+    cand_i = np.empty(64 * npix, np.int64)
+    cand_key = np.empty(64 * npix, np.float64)
+    rx = np.empty(tile_size, np.float64)
+    ry = np.empty(tile_size, np.float64)
+    for t in range(w, n_tiles, n_workers):
+        lo, hi = offsets[t], offsets[t + 1]
+        if hi == lo:
+            continue
+        x0 = (t % tiles_x) * tile_size
+        y0 = (t // tiles_x) * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        cand_i, cand_key = _tile_order(
+            lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
+            consts, mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+        )  # fmt: skip
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                p = (py - y0) * tile_size + (px - x0)
+                T = one
+                m_used = 0
+                for j in range(start[p], start[p + 1]):
+                    g = gauss_ids[cand_i[j]]
+                    dx = xs[px] - means2d[g, 0]
+                    dy = ys[py] - means2d[g, 1]
+                    power = (
+                        -half * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy)
+                        - conics[g, 1] * dx * dy
+                    )
+                    alpha = opac[g] * math.exp(power)
+                    if alpha > a_max:
+                        alpha = a_max
+                    test_T = T * (one - alpha)
+                    if test_T < t_min:
+                        break
+                    wgt = alpha * T
+                    for ch in range(n_ch):
+                        out_feat[py, px, ch] += feats[g, ch] * wgt
+                    T = test_T
+                    m_used += 1
+                out_T[py, px] = T
+                out_last[py, px] = m_used
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _backward_worker(
+    w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
+    xs, ys, consts, mode, geo, planes, intr, final_T, last, grad_feat, grad_alpha, gbuf,
+):  # fmt: skip  # pragma: no cover - numba
+    """Each pixel's contributors in the forward's order again, back to front (the
+    compiled backend's formulas); adds into gbuf[w, gaussian]."""
+    height, width, n_ch = grad_feat.shape
+    n_tiles = offsets.shape[0] - 1
+    half, a_max = consts[0], consts[3]
+    npix = tile_size * tile_size
+    start = np.zeros(npix + 1, np.int64)
+    begin = np.zeros(npix, np.int64)
+    cand_i = np.empty(64 * npix, np.int64)
+    cand_key = np.empty(64 * npix, np.float64)
+    rx = np.empty(tile_size, np.float64)
+    ry = np.empty(tile_size, np.float64)
+    for t in range(w, n_tiles, n_workers):
+        lo, hi = offsets[t], offsets[t + 1]
+        if hi == lo:
+            continue
+        x0 = (t % tiles_x) * tile_size
+        y0 = (t // tiles_x) * tile_size
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        cand_i, cand_key = _tile_order(
+            lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
+            consts, mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+        )  # fmt: skip
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                m_used = last[py, px]
+                if m_used == 0:
+                    continue
+                p = (py - y0) * tile_size + (px - x0)
+                T_cur = np.float64(final_T[py, px])
+                ga_T = np.float64(grad_alpha[py, px]) * T_cur
+                R = 0.0
+                for j in range(start[p] + m_used - 1, start[p] - 1, -1):
+                    g = gauss_ids[cand_i[j]]
+                    mx, my = means2d[g, 0], means2d[g, 1]
+                    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
+                    dx = xs[px] - mx
+                    dy = ys[py] - my
+                    power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
+                    G = math.exp(power)
+                    raw = opac[g] * G
+                    alpha = a_max if raw > a_max else raw
+                    al = np.float64(alpha)
+                    one_m = 1.0 - al
+                    T_before = T_cur / one_m
+                    wgt = al * T_before
+                    gf = 0.0
+                    for ch in range(n_ch):
+                        gc = np.float64(grad_feat[py, px, ch])
+                        gf += gc * np.float64(feats[g, ch])
+                        gbuf[w, g, 6 + ch] += wgt * gc
+                    d_alpha = T_before * gf + (ga_T - R) / one_m
+                    R += wgt * gf
+                    T_cur = T_before
+                    if raw > a_max:
+                        continue  # clamped: alpha depends on neither o nor the footprint
+                    d_pow = al * d_alpha
+                    dxd, dyd = np.float64(dx), np.float64(dy)
+                    ad, bd, cd = np.float64(a), np.float64(b), np.float64(c)
+                    gbuf[w, g, 0] += (ad * dxd + bd * dyd) * d_pow
+                    gbuf[w, g, 1] += (cd * dyd + bd * dxd) * d_pow
+                    gbuf[w, g, 2] -= 0.5 * dxd * dxd * d_pow
+                    gbuf[w, g, 3] -= dxd * dyd * d_pow
+                    gbuf[w, g, 4] -= 0.5 * dyd * dyd * d_pow
+                    gbuf[w, g, 5] += np.float64(G) * d_alpha
+
+
+class PlaneOrderComposite(torch.autograd.Function):
+    """Differentiable plane-order compositing on the CPU (numba, pixel-major)."""
+
+    @staticmethod
+    def forward(
+        ctx,
+        means2d: Tensor,
+        conics: Tensor,
+        opacities: Tensor,
+        features: Tensor,
+        bins: TileBins,
+        width: int,
+        height: int,
+        order: PlaneKeys,
+    ) -> tuple[Tensor, Tensor]:
+        dtype = _compute_dtype(means2d, conics, opacities, features)
+        n_ch = features.shape[1]
+        npdt = np.float32 if dtype == torch.float32 else np.float64
+        out_feat = zeros_touched((height, width, n_ch), npdt)
+        out_T = np.ones((height, width), npdt)
+        out_last = zeros_touched((height, width), np.int32)
+        setup = None
+        extra: tuple = ()
+        if bins.gauss_ids.numel() > 0 and n_ch > 0:
+            setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
+            intr = np.array([order.fx, order.fy, order.cx, order.cy], np.float64)
+            planes = order.planes.detach().to(torch.float64).contiguous().numpy()
+            extra = (planes, intr)
+            args = (*setup.args(), *extra, out_feat, out_T, out_last)
+            run_workers(_forward_worker, kernel_threads(), args)
+        ctx.save_for_backward(means2d, conics, opacities, features)
+        ctx.setup, ctx.extra = setup, extra
+        ctx.meta = (dtype, width, height, n_ch)
+        ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype, features.dtype)
+        ctx.shapes = (means2d.shape, conics.shape, opacities.shape, features.shape)
+        ctx.state = (out_T, out_last)
+        return torch.from_numpy(out_feat), 1.0 - torch.from_numpy(out_T)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad_feat: Tensor | None, grad_alpha: Tensor | None):
+        ctx.saved_tensors  # noqa: B018  (raises if an input was modified in place)
+        dtype, width, height, n_ch = ctx.meta
+        setup: _Setup | None = ctx.setup
+        shapes, in_dtypes = ctx.shapes, ctx.in_dtypes
+        n = shapes[0][0]
+        n_workers = kernel_threads() if setup is not None and n > 0 else 1
+        with scratch_zeros((n_workers, n, 6 + n_ch)) as gbuf:
+            if setup is not None and n > 0:
+                out_T, out_last = ctx.state
+                gf = (
+                    np.zeros((height, width, n_ch), out_T.dtype)
+                    if grad_feat is None
+                    else _np(grad_feat, dtype)
+                )
+                ga = (
+                    np.zeros((height, width), out_T.dtype)
+                    if grad_alpha is None
+                    else _np(grad_alpha, dtype)
+                )
+                args = (*setup.args(), *ctx.extra, out_T, out_last, gf, ga, gbuf)
+                run_workers(_backward_worker, n_workers, args)
+            widths = (_G_A - _G_MX, _G_O - _G_A, _G_F - _G_O, n_ch)
+            parts = [
+                np.empty((n, w), store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
+            ]
+            run_ranges(_reduce_split_range, n, (gbuf, *parts))
+            out = [
+                torch.from_numpy(g).to(d).reshape(s) if need else None
+                for g, s, d, need in zip(
+                    parts, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
+                )
+            ]
+        return (*out, None, None, None, None)
+
+
+def rasterize_cpu_plane(
+    proj: Projected,
+    opacities: Tensor,
+    features: Tensor,
+    bins: TileBins,
+    width: int,
+    height: int,
+    order: PlaneKeys,
+) -> tuple[Tensor, Tensor]:
+    """The compiled backend's compositing in per-pixel plane order (float32 or float64)."""
+    tensors = (proj.means2d, proj.conics, opacities.reshape(-1), features)
+    feats, alpha = PlaneOrderComposite.apply(*tensors, bins, width, height, order)
+    return feats.to(features.dtype), alpha.to(features.dtype)
