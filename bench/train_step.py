@@ -140,16 +140,19 @@ def run(args: argparse.Namespace) -> dict:
             gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
             deferred_shade(gb, env, white)
 
-    def full_step(multi_view: bool = True) -> None:
-        gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
+    def full_step(multi_view: bool = True, order: str = "centre") -> None:
+        gb, _ = render_gbuffer(
+            gs, cam, sh_degree=3, backend=backend, antialiased=aa, splat_order=order
+        )
         shade = deferred_shade(gb, env, white)
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
         if multi_view:  # the neighbour is read for its depth only, as training does
             gb_n, _ = render_gbuffer(
-                gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa, geometry_only=True
-            )
+                gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa, geometry_only=True,
+                splat_order=order,
+            )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, True)
             mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, n_pixels=4096)
             loss = loss + 0.1 * mv
@@ -166,6 +169,9 @@ def run(args: argparse.Namespace) -> dict:
         # the plan drops L_multi where every view is masked (core/training/planner.py)
         (MASKED_STEP, lambda: full_step(multi_view=False)),
     ]
+    order_case = f"full step (multi-view phase), splat_order {args.compare_order}"
+    if args.compare_order:  # TrainConfig.splat_order's cost, timed beside the default
+        cases.append((order_case, lambda: full_step(order=args.compare_order)))
     times = time_rounds(cases, args.warmup, args.repeat, device)
     rows = []
     for name, _ in cases:
@@ -174,7 +180,14 @@ def run(args: argparse.Namespace) -> dict:
     plain = times["plain step"]["ms"]
     full, masked = (times[k]["ms"] for k in ("full step (multi-view phase)", MASKED_STEP))
     by = {r["case"]: r for r in rows}
+    extra = {}
+    if args.compare_order:
+        extra = {
+            "compare_order": args.compare_order,
+            "order_over_full_range": paired_ratio(times[order_case]["ms"], full),
+        }
     return {
+        **extra,
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
         "backend": backend,
@@ -244,6 +257,13 @@ def format_table(res: dict) -> str:
         f"G-buffer / plain render: {res['gbuffer_over_plain_render']:.2f}×; "
         f"deferred render: {res['deferred_fps']:.0f} FPS (target ≥ 200 on an H100)",
     ]
+    if "compare_order" in res:
+        o = res["order_over_full_range"]
+        lines += [
+            "",
+            f"full step with splat_order {res['compare_order']} / full step: "
+            f"{o['median']:.2f}× [{o['min']:.2f}–{o['max']:.2f}]",
+        ]
     return "\n".join(lines)
 
 
@@ -269,6 +289,11 @@ def main(argv: list[str] | None = None) -> None:
         "--no-roughness",
         action="store_true",
         help="the model without per-splat roughness (mirror lookups, as before issue 36)",
+    )
+    ap.add_argument(
+        "--compare-order",
+        choices=["slab", "plane"],
+        help="also time the full step with this TrainConfig.splat_order, beside the default",
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)

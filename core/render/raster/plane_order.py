@@ -199,20 +199,49 @@ def rasterize_reference_plane(
 
 
 @njit(nogil=True, fastmath=False, cache=True)
-def _contributor_lists(
-    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, fill,
+def _count_candidates(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
 ):  # fmt: skip  # pragma: no cover - numba
-    """The contributors (alpha ≥ 1/255) of each pixel p of the tile as tile-entry indices
-    ``cand_i[start[p]:start[p + 1]]``, sorted by plane depth (stable: ties keep the tile's
-    order). Gaussian-major over the entries with the compiled backend's culling
-    ellipses (a culling only: every visited pixel is tested with the reference formula).
-    ``fill=False`` only counts: ``start`` then holds the offsets and the total is
-    returned, so the caller can size ``cand_i``/``cand_key``; ``fill=True`` fills them."""
+    """``begin[p]``: where pixel p's run starts, room for every entry whose culling
+    ellipse covers the pixel (a superset of its contributors: no exp() here); returns
+    the room needed in all."""
+    npix = tile_size * tile_size
+    begin[:] = 0
+    for i in range(lo, hi):
+        g = gauss_ids[i]
+        m = mode[g]
+        if m == 0:
+            continue
+        geo_g = geo[g]
+        mxd = np.float64(means2d[g, 0])
+        myd = np.float64(means2d[g, 1])
+        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
+        if c0 >= c1:
+            continue
+        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
+        for py in range(r0, r1):
+            q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
+            for px in range(q0, q1):
+                begin[(py - y0) * tile_size + (px - x0) + 1] += 1
+    for p in range(npix):
+        begin[p + 1] += begin[p]
+    return begin[npix]
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _fill_sorted(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g,
+):  # fmt: skip  # pragma: no cover - numba
+    """Each pixel p's contributors (alpha ≥ 1/255) as tile-entry indices
+    ``cand_i[begin[p]:end[p]]`` sorted by plane depth (stable: entries arrive in tile
+    order and ties keep it), with their Gaussian factor exp(power) in ``cand_g``.
+    Gaussian-major over the entries with the compiled backend's culling ellipses (a
+    culling only: every visited pixel is tested with the reference formula)."""
     half, a_min, a_max = consts[0], consts[2], consts[3]
     npix = tile_size * tile_size
-    if not fill:
-        start[:] = 0
+    for p in range(npix):
+        end[p] = begin[p]
     for i in range(lo, hi):
         g = gauss_ids[i]
         m = mode[g]
@@ -227,76 +256,64 @@ def _contributor_lists(
         r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
         mx, my = means2d[g, 0], means2d[g, 1]
         a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
+        nx, ny, nz, d = planes[g, 0], planes[g, 1], planes[g, 2], planes[g, 3]
+        z, h = planes[g, 4], planes[g, 5]
         for py in range(r0, r1):
             q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
             dy = ys[py] - my
+            ny_ry = ny * ry[py - y0] + nz
             for px in range(q0, q1):
                 dx = xs[px] - mx
                 power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
                 if not (power <= 0):
                     continue
-                alpha = o * math.exp(power)
+                G = math.exp(power)
+                alpha = o * G
                 if alpha > a_max:
                     alpha = a_max
                 if not (alpha >= a_min):
                     continue
                 p = (py - y0) * tile_size + (px - x0)
-                if not fill:
-                    start[p + 1] += 1
-                    continue
-                ndot = planes[g, 0] * rx[px - x0] + planes[g, 1] * ry[py - y0] + planes[g, 2]
-                key = planes[g, 3] / ndot
-                z, h = planes[g, 4], planes[g, 5]
+                key = d / (nx * rx[px - x0] + ny_ry)
                 if not math.isfinite(key):
                     key = z
                 key = min(max(key, z - h), z + h)
-                # insertion into the pixel's sorted run (entries arrive in tile order)
-                j = start[p + 1]
+                j = end[p]
                 s0 = begin[p]
                 while j > s0 and cand_key[j - 1] > key:
                     cand_key[j] = cand_key[j - 1]
                     cand_i[j] = cand_i[j - 1]
+                    cand_g[j] = cand_g[j - 1]
                     j -= 1
                 cand_key[j] = key
                 cand_i[j] = i
-                start[p + 1] += 1
-    if not fill:
-        for p in range(npix):
-            start[p + 1] += start[p]
-        total = start[npix]
-        # filling counts each run's end up again from its beginning
-        for p in range(npix):
-            begin[p] = start[p]
-        for p in range(npix):
-            start[p + 1] = begin[p]
-        return total
-    return start[npix]
+                cand_g[j] = G
+                end[p] += 1
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _tile_order(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Count, size and fill the tile's per-pixel contributor runs (see
-    :func:`_contributor_lists`); returns the candidate arrays (grown when needed) and
-    ``start`` with ``cand_i[start[p]:start[p + 1]]`` the run of pixel p."""
+    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`),
+    with the candidate arrays grown first where the tile needs more room; returns them."""
     for px in range(x0, x1):
         rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
     for py in range(y0, y1):
         ry[py - y0] = (np.float64(ys[py]) - intr[3]) / intr[1]
-    total = _contributor_lists(
-        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-        mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, False,
-    )  # fmt: skip
+    total = _count_candidates(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
+    )
     if total > cand_i.shape[0]:
         cand_i = np.empty(2 * total, np.int64)
         cand_key = np.empty(2 * total, np.float64)
-    _contributor_lists(
+        cand_g = np.empty(2 * total, cand_g.dtype)
+    _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-        mode, geo, planes, rx, ry, start, begin, cand_i, cand_key, True,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g,
     )  # fmt: skip
-    return cand_i, cand_key
+    return cand_i, cand_key, cand_g
 
 
 @njit(nogil=True, fastmath=False, cache=True)
@@ -309,12 +326,13 @@ def _forward_worker(
     contributors composited, in that order."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
-    half, one, a_max, t_min = consts[0], consts[1], consts[3], consts[4]
+    one, a_max, t_min = consts[1], consts[3], consts[4]
     npix = tile_size * tile_size
-    start = np.zeros(npix + 1, np.int64)
-    begin = np.zeros(npix, np.int64)
+    begin = np.zeros(npix + 1, np.int64)
+    end = np.zeros(npix, np.int64)
     cand_i = np.empty(64 * npix, np.int64)
     cand_key = np.empty(64 * npix, np.float64)
+    cand_g = np.empty(64 * npix, opac.dtype)
     rx = np.empty(tile_size, np.float64)
     ry = np.empty(tile_size, np.float64)
     for t in range(w, n_tiles, n_workers):
@@ -325,24 +343,18 @@ def _forward_worker(
         y0 = (t // tiles_x) * tile_size
         x1 = min(x0 + tile_size, width)
         y1 = min(y0 + tile_size, height)
-        cand_i, cand_key = _tile_order(
+        cand_i, cand_key, cand_g = _tile_order(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
-            consts, mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
         )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tile_size + (px - x0)
                 T = one
                 m_used = 0
-                for j in range(start[p], start[p + 1]):
+                for j in range(begin[p], end[p]):
                     g = gauss_ids[cand_i[j]]
-                    dx = xs[px] - means2d[g, 0]
-                    dy = ys[py] - means2d[g, 1]
-                    power = (
-                        -half * (conics[g, 0] * dx * dx + conics[g, 2] * dy * dy)
-                        - conics[g, 1] * dx * dy
-                    )
-                    alpha = opac[g] * math.exp(power)
+                    alpha = opac[g] * cand_g[j]
                     if alpha > a_max:
                         alpha = a_max
                     test_T = T * (one - alpha)
@@ -366,12 +378,13 @@ def _backward_worker(
     compiled backend's formulas); adds into gbuf[w, gaussian]."""
     height, width, n_ch = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
-    half, a_max = consts[0], consts[3]
+    a_max = consts[3]
     npix = tile_size * tile_size
-    start = np.zeros(npix + 1, np.int64)
-    begin = np.zeros(npix, np.int64)
+    begin = np.zeros(npix + 1, np.int64)
+    end = np.zeros(npix, np.int64)
     cand_i = np.empty(64 * npix, np.int64)
     cand_key = np.empty(64 * npix, np.float64)
+    cand_g = np.empty(64 * npix, opac.dtype)
     rx = np.empty(tile_size, np.float64)
     ry = np.empty(tile_size, np.float64)
     for t in range(w, n_tiles, n_workers):
@@ -382,9 +395,9 @@ def _backward_worker(
         y0 = (t // tiles_x) * tile_size
         x1 = min(x0 + tile_size, width)
         y1 = min(y0 + tile_size, height)
-        cand_i, cand_key = _tile_order(
+        cand_i, cand_key, cand_g = _tile_order(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
-            consts, mode, geo, planes, intr, start, begin, cand_i, cand_key, rx, ry,
+            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
         )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
@@ -395,14 +408,9 @@ def _backward_worker(
                 T_cur = np.float64(final_T[py, px])
                 ga_T = np.float64(grad_alpha[py, px]) * T_cur
                 R = 0.0
-                for j in range(start[p] + m_used - 1, start[p] - 1, -1):
+                for j in range(begin[p] + m_used - 1, begin[p] - 1, -1):
                     g = gauss_ids[cand_i[j]]
-                    mx, my = means2d[g, 0], means2d[g, 1]
-                    a, b, c = conics[g, 0], conics[g, 1], conics[g, 2]
-                    dx = xs[px] - mx
-                    dy = ys[py] - my
-                    power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
-                    G = math.exp(power)
+                    G = cand_g[j]
                     raw = opac[g] * G
                     alpha = a_max if raw > a_max else raw
                     al = np.float64(alpha)
@@ -420,8 +428,13 @@ def _backward_worker(
                     if raw > a_max:
                         continue  # clamped: alpha depends on neither o nor the footprint
                     d_pow = al * d_alpha
-                    dxd, dyd = np.float64(dx), np.float64(dy)
-                    ad, bd, cd = np.float64(a), np.float64(b), np.float64(c)
+                    dxd = np.float64(xs[px] - means2d[g, 0])
+                    dyd = np.float64(ys[py] - means2d[g, 1])
+                    ad, bd, cd = (
+                        np.float64(conics[g, 0]),
+                        np.float64(conics[g, 1]),
+                        np.float64(conics[g, 2]),
+                    )
                     gbuf[w, g, 0] += (ad * dxd + bd * dyd) * d_pow
                     gbuf[w, g, 1] += (cd * dyd + bd * dxd) * d_pow
                     gbuf[w, g, 2] -= 0.5 * dxd * dxd * d_pow
