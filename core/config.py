@@ -302,16 +302,15 @@ class TrainConfig(_Strict):
         "integrates (3DGS uses 0.3; wider filters blur silhouettes outwards and training "
         "then shrinks the surface to match them)",
     )
-    splat_order: Literal["centre", "slab", "plane"] = Field(
-        "centre",
-        description="order splats are composited in: 'centre', by centre depth (3DGS, every "
-        "backend); 'slab', by centre depth rounded up to slabs two median splat sizes "
-        "thick, index order within a slab, so a surface's colours and normals are not "
-        "weighted toward the splats displaced toward the camera (an experiment: images and "
-        "normals better on the rendered dev scenes, Chamfer distance mixed, a real photo "
-        "capture 0.3 dB worse); 'plane', each pixel by where its ray meets the splats' "
-        "planes (core/render/raster/plane_order.py). 'slab' and 'plane' need the cpu or "
-        "reference backend (docs/benchmarks.md)",
+    splat_order: Literal["auto", "centre", "slab", "plane"] = Field(
+        "auto",
+        description="order splats are composited in at each pixel: 'plane', where the "
+        "pixel's ray meets each splat's plane (core/render/raster/plane_order.py; cpu and "
+        "reference backends), so a surface's colours and normals are not weighted toward "
+        "the splats whose centres lie toward the camera; 'centre', by centre depth (3DGS, "
+        "every backend); 'auto' (default), plane order where the backend has it, centre "
+        "order on cuda (gsplat sorts by itself); 'slab', centre depth rounded up to slabs "
+        "two median splat sizes thick (an experiment; docs/benchmarks.md)",
     )
     envmap_resolution: int | Literal["auto"] = Field(
         "auto",
@@ -445,7 +444,11 @@ def config_from_dict(data: dict[str, Any], source: str = "config") -> TrainConfi
 
 
 # Fields added after runs were first saved, with the value those runs trained with.
-LEGACY_DEFAULTS: dict[str, Any] = {"antialiased": False, "lowpass_2d": 0.3}
+LEGACY_DEFAULTS: dict[str, Any] = {
+    "antialiased": False,
+    "lowpass_2d": 0.3,
+    "splat_order": "centre",
+}
 
 
 def saved_config(data: dict[str, Any], source: str = "saved config") -> TrainConfig:

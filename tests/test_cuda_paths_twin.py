@@ -37,6 +37,8 @@ def _train(backend: str, out, iterations: int) -> tuple[Trainer, list[dict[str, 
             "init_points": 400,
             "envmap_resolution": 8,
             "seed": 3,
+            # one order on both: 'auto' is plane order on the reference, centre on gsplat
+            "splat_order": "centre",
             # high enough that only some Gaussians qualify: which ones depends on the
             # screen gradients scattered back through ``gaussian_ids``
             "densify": {"grad_threshold": 3e-3},

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from core.config import TrainConfig
+from core.config import TrainConfig, saved_config
 from core.errors import BackendUnavailableError
 from core.model.schedule import phase_at
 from core.render.raster import bin_gaussians, covariances_from, project_gaussians, rasterize
@@ -197,3 +197,24 @@ def test_tiles_with_more_contributors_than_the_kernels_first_buffers_hold() -> N
     alpha = rasterize(means, quats, scales, op, feats, cam, backend="cpu").alpha
     # 1 − 0.98⁶⁴ = 0.726: every pixel has more than 64 contributors
     assert float(alpha.min()) > 0.75
+
+
+@pytest.mark.usefixtures("twin_as_cuda")
+def test_auto_is_plane_order_where_the_backend_has_it_and_centre_order_on_gsplat() -> None:
+    means, quats, scales, op, feats = _crossing_pair()
+    cam = _camera()
+    kw = {"backend": "cpu"}
+    auto = rasterize(means, quats, scales, op, feats, cam, plane_order="auto", **kw)
+    plane = rasterize(means, quats, scales, op, feats, cam, plane_order=True, **kw)
+    torch.testing.assert_close(auto.features, plane.features, rtol=0, atol=0)
+    on_cuda = rasterize(means, quats, scales, op, feats, cam, backend="cuda", plane_order="auto")
+    centre = rasterize(means, quats, scales, op, feats, cam, backend="cpu")
+    torch.testing.assert_close(on_cuda.features, centre.features, rtol=1e-6, atol=1e-6)
+    assert not torch.allclose(plane.features, centre.features, atol=1e-3)
+
+
+def test_runs_saved_before_plane_order_keep_rendering_in_centre_order() -> None:
+    assert TrainConfig().splat_order == "auto"
+    old = saved_config(TrainConfig().model_dump(mode="json", exclude={"splat_order"}))
+    assert old.splat_order == "centre"
+    assert saved_config(TrainConfig(splat_order="plane").model_dump()).splat_order == "plane"

@@ -1,6 +1,7 @@
 """The benchmark's configurations: the paper's Table 3 ablations, Glint's additions
 switched off (silhouette points, one-sided splats, grazing opacity, roughness-aware
-reflection, the mask term; all off = the paper's full model) and an SH-only baseline."""
+reflection, the mask term, plane order; all off = the paper's full model) and an SH-only
+baseline."""
 
 from __future__ import annotations
 
@@ -27,6 +28,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "sil_turns_normals": {"silhouette_holds_normals": False},
     "sil_middle": {"silhouette_touching": False},
     "no_mask_loss": {"mask_coverage": False},
+    "centre_order": {},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -63,10 +65,17 @@ LABELS = {
     "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
     "sil_middle": "silhouette term at each hull chord's middle (not where the ray touches)",
     "no_mask_loss": "w/o the halo term (coverage fitted through the colours only)",
+    "centre_order": "w/o plane order (each tile's splats in centre-depth order, as 3DGS)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, same-surface depth normals, facing-only depth losses, the "
-    "halo term)",
+    "halo term, plane order)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
+}
+# name -> top-level settings a configuration changes besides its ablation switches
+SETTINGS: dict[str, dict[str, Any]] = {
+    "centre_order": {"splat_order": "centre"},
+    "paper": {"splat_order": "centre"},
+    "sh_only": {"splat_order": "centre"},
 }
 # rows in the order of the paper's Table 3 (full model last), the baseline first
 TABLE_ORDER = (
@@ -84,6 +93,7 @@ TABLE_ORDER = (
     "sil_turns_normals",
     "sil_middle",
     "no_mask_loss",
+    "centre_order",
     "paper",
     "full",
 )
@@ -125,6 +135,7 @@ def bench_config(
         data["time_budget"] = float(time_budget)
     data["resolution_scale"] = float(resolution_scale)
     data.setdefault("ablation", {}).update(CONFIGS[name])
+    data.update(SETTINGS.get(name, {}))
     if data["ablation"].get("deferred_shading", True):
         data.setdefault("plan_overrides", {}).setdefault("envmap", True)
     return config_from_dict(data, f"bench config {name}")

@@ -279,7 +279,8 @@ def render_gbuffer_tensors(
     millimetres, metres or kilometres renders the same images. ``lowpass`` (px²) is the
     screen-space filter added to each splat (``TrainConfig.lowpass_2d``). ``splat_order``
     (``TrainConfig.splat_order``): 'slab' composites in depth slabs of
-    :func:`order_slab`, 'plane' each pixel in the order its ray meets the splats' planes.
+    :func:`order_slab`, 'plane' each pixel in the order its ray meets the splats' planes,
+    'auto' plane order where the backend has it (not on gsplat: centre order).
 
     ``held_plane`` splats four more channels, last: the normal and D again, n̄ and n̄·μ
     with the splats' normals detached (``GBuffer.normal_held``, ``plane_dist_held``). A
@@ -319,7 +320,7 @@ def render_gbuffer_tensors(
         antialiased=antialiased,
         eps2d=lowpass,
         order_slab=order_slab(scales, covariances) if splat_order == "slab" else None,
-        plane_order=splat_order == "plane",
+        plane_order="auto" if splat_order == "auto" else splat_order == "plane",
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import partial
+from typing import Literal
 
 import torch
 from torch import Tensor
@@ -165,7 +166,7 @@ def rasterize(
     absgrad: bool = False,
     antialiased: bool = False,
     order_slab: float | None = None,
-    plane_order: bool = False,
+    plane_order: bool | Literal["auto"] = False,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
@@ -177,7 +178,8 @@ def rasterize(
     ``order_slab`` (world units): composite in slabs of centre depth, index order
     within one (``TrainConfig.splat_order``; not on gsplat, which sorts by itself).
     ``plane_order``: each pixel composites its splats in the order their planes meet
-    its ray (``core.render.raster.plane_order``; cpu and reference backends only).
+    its ray (``core.render.raster.plane_order``; cpu and reference backends only);
+    ``"auto"``: where the backend can, else centre order (gsplat).
     """
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
@@ -186,6 +188,8 @@ def rasterize(
             f"features must be (N, C) with N={means.shape[0]}, got {tuple(features.shape)}"
         )
     name = resolve_backend(backend, means.device)
+    if plane_order == "auto":
+        plane_order = name not in PIPELINES
     if (order_slab is not None or plane_order) and name in PIPELINES:
         which = "plane" if plane_order else "slab"
         raise BackendUnavailableError(
