@@ -11,7 +11,9 @@ All cases run in one process on the same Gaussians, side by side:
   backend as ours with 3 channels.
 * ``G-buffer``: our 9-channel pass (base, normal, plane distance, w_r, centre z).
 * ``deferred render``: G-buffer + env-map shading, no gradients (the viewer's frame).
-* ``full step``: the multi-view phase, the heaviest: G-buffer, deferred shading, RGB,
+* ``full step``: the multi-view phase, the heaviest, composited in the default
+  ``splat_order`` (plane order on CPU, centre order on CUDA; ``--compare-order`` times
+  another order beside it): G-buffer, deferred shading, RGB,
   scale, single-view and multi-view losses (a second, depth-only G-buffer for the
   neighbour), backward and Adam; and the same step without L_multi, as the scene plan
   runs a capture whose every view is masked.
@@ -140,7 +142,7 @@ def run(args: argparse.Namespace) -> dict:
             gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
             deferred_shade(gb, env, white)
 
-    def full_step(multi_view: bool = True, order: str = "centre") -> None:
+    def full_step(multi_view: bool = True, order: str = cfg.splat_order) -> None:
         gb, _ = render_gbuffer(
             gs, cam, sh_degree=3, backend=backend, antialiased=aa, splat_order=order
         )
@@ -292,8 +294,9 @@ def main(argv: list[str] | None = None) -> None:
     )
     ap.add_argument(
         "--compare-order",
-        choices=["slab", "plane"],
-        help="also time the full step with this TrainConfig.splat_order, beside the default",
+        choices=["centre", "slab", "plane"],
+        help="also time the full step with this TrainConfig.splat_order, beside the default "
+        "('auto': plane order on the cpu backend, centre order on cuda)",
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)

@@ -11,9 +11,10 @@ from bench.common import bench_camera
 from bench.train_step import MASKED_STEP, format_table, neighbour_camera, paired_ratio, run
 
 
-@pytest.mark.parametrize("no_roughness", [False, True])
-def test_train_step_bench_runs_on_cpu(no_roughness: bool):
+@pytest.mark.parametrize(("no_roughness", "compare"), [(False, "centre"), (True, None)])
+def test_train_step_bench_runs_on_cpu(no_roughness: bool, compare: str | None):
     args = argparse.Namespace(
+        compare_order=compare,
         no_roughness=no_roughness,
         device="cpu",
         backend="cpu",
@@ -28,7 +29,12 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool):
     res = run(args)
     names = [r["case"] for r in res["rows"]]
     assert names[0] == "plain render"
-    assert names[-2:] == ["full step (multi-view phase)", MASKED_STEP]
+    order_case = ["full step (multi-view phase), splat_order centre"] if compare else []
+    assert names[-2 - len(order_case) :] == [
+        "full step (multi-view phase)",
+        MASKED_STEP,
+        *order_case,
+    ]
     assert all(r["ms"] > 0 and math.isfinite(r["ms"]) for r in res["rows"])
     assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
     assert res["masked_full_over_plain_step"] > 0
@@ -38,6 +44,10 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool):
         assert r["min"] <= r["median"] <= r["max"]
     assert res["rounds"] == 2
     assert res["roughness"] is not no_roughness  # the full model as trained, or without it
+    if compare:  # the default (plane order here) timed beside centre order, round by round
+        r = res["order_over_full_range"]
+        assert 0 < r["min"] <= r["median"] <= r["max"]
+        assert "full step with splat_order centre / full step" in format_table(res)
 
 
 def test_neighbour_camera_keeps_the_target_in_view():

@@ -93,7 +93,7 @@ def test_plain_gsplat_render_matches_ours_with_the_same_sh():
 def test_gpu_benchmark_runs_through_the_cuda_path():
     args = argparse.Namespace(
         device="cpu", backend="cuda", size=24, n=300, envmap=8, repeat=1, warmup=0,
-        threads=1, split_threads=False, no_roughness=False,
+        threads=1, split_threads=False, no_roughness=False, compare_order=None,
     )  # fmt: skip
     res = run(args)
     assert res["backend"] == "cuda"
