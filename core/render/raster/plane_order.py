@@ -59,6 +59,7 @@ from core.render.raster.cpu import (
     _span,
 )
 from core.render.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
+from core.render.raster.reference import tile_pixels
 from core.render.rotations import normalize_quats, quat_to_rotmat
 from core.scene.cameras import Camera
 
@@ -163,11 +164,7 @@ def rasterize_reference_plane(
             lo, hi = offsets[t], offsets[t + 1]
             if hi == lo:
                 continue
-            us = torch.arange(tx * ts, min(tx * ts + ts, width), device=device)
-            vs = torch.arange(ty * ts, min(ty * ts + ts, height), device=device)
-            vv, uu = torch.meshgrid(vs, us, indexing="ij")
-            uu, vv = uu.reshape(-1), vv.reshape(-1)
-            pix = torch.stack([uu, vv], dim=-1).to(dtype) + 0.5
+            pix, uu, vv = tile_pixels(tx, ty, ts, width, height, dtype, device)
             ids = bins.gauss_ids[lo:hi].long()
             d = pix[:, None, :] - proj.means2d[ids][None, :, :]
             dx, dy = d[..., 0], d[..., 1]
@@ -317,6 +314,30 @@ def _tile_order(
 
 
 @njit(nogil=True, fastmath=False, cache=True)
+def _scratch(tile_size, opac):  # pragma: no cover - numba
+    """A worker's buffers: run bounds, room for 64 contributors a pixel (grown per tile
+    where needed), the tile's ray slopes."""
+    npix = tile_size * tile_size
+    return (
+        np.zeros(npix + 1, np.int64),
+        np.zeros(npix, np.int64),
+        np.empty(64 * npix, np.int64),
+        np.empty(64 * npix, np.float64),
+        np.empty(64 * npix, opac.dtype),
+        np.empty(tile_size, np.float64),
+        np.empty(tile_size, np.float64),
+    )
+
+
+@njit(nogil=True, fastmath=False, cache=True, inline="always")
+def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
+    """Pixel bounds x0, y0, x1, y1 (exclusive) of tile t."""
+    x0 = (t % tiles_x) * tile_size
+    y0 = (t // tiles_x) * tile_size
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+
+
+@njit(nogil=True, fastmath=False, cache=True)
 def _forward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
     xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
@@ -327,22 +348,12 @@ def _forward_worker(
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
-    npix = tile_size * tile_size
-    begin = np.zeros(npix + 1, np.int64)
-    end = np.zeros(npix, np.int64)
-    cand_i = np.empty(64 * npix, np.int64)
-    cand_key = np.empty(64 * npix, np.float64)
-    cand_g = np.empty(64 * npix, opac.dtype)
-    rx = np.empty(tile_size, np.float64)
-    ry = np.empty(tile_size, np.float64)
+    begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
             continue
-        x0 = (t % tiles_x) * tile_size
-        y0 = (t // tiles_x) * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
         cand_i, cand_key, cand_g = _tile_order(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
             consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
@@ -379,22 +390,12 @@ def _backward_worker(
     height, width, n_ch = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     a_max = consts[3]
-    npix = tile_size * tile_size
-    begin = np.zeros(npix + 1, np.int64)
-    end = np.zeros(npix, np.int64)
-    cand_i = np.empty(64 * npix, np.int64)
-    cand_key = np.empty(64 * npix, np.float64)
-    cand_g = np.empty(64 * npix, opac.dtype)
-    rx = np.empty(tile_size, np.float64)
-    ry = np.empty(tile_size, np.float64)
+    begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
             continue
-        x0 = (t % tiles_x) * tile_size
-        y0 = (t // tiles_x) * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
         cand_i, cand_key, cand_g = _tile_order(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
             consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,

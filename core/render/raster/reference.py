@@ -51,6 +51,18 @@ def composite_chunk(
     return out, T_after[:, -1], T_inc
 
 
+def tile_pixels(
+    tx: int, ty: int, ts: int, width: int, height: int, dtype: torch.dtype, device: torch.device
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Pixel centres (P, 2) of tile (tx, ty) in row-major order, and their columns and
+    rows (P,) as integers."""
+    us = torch.arange(tx * ts, min(tx * ts + ts, width), device=device)
+    vs = torch.arange(ty * ts, min(ty * ts + ts, height), device=device)
+    vv, uu = torch.meshgrid(vs, us, indexing="ij")
+    uu, vv = uu.reshape(-1), vv.reshape(-1)
+    return torch.stack([uu, vv], dim=-1).to(dtype) + 0.5, uu, vv
+
+
 def rasterize_reference(
     proj: Projected,
     opacities: Tensor,
@@ -77,11 +89,7 @@ def rasterize_reference(
             lo, hi = offsets[t], offsets[t + 1]
             if hi == lo:
                 continue
-            u0, v0 = tx * ts, ty * ts
-            us = torch.arange(u0, min(u0 + ts, width), device=device)
-            vs = torch.arange(v0, min(v0 + ts, height), device=device)
-            vv, uu = torch.meshgrid(vs, us, indexing="ij")
-            pix = torch.stack([uu.reshape(-1), vv.reshape(-1)], dim=-1).to(dtype) + 0.5
+            pix, uu, vv = tile_pixels(tx, ty, ts, width, height, dtype, device)
             ids_tile = bins.gauss_ids[lo:hi]
             T_chain = torch.ones(pix.shape[0], dtype=dtype, device=device)
             T = torch.ones_like(T_chain)
@@ -99,7 +107,7 @@ def rasterize_reference(
                     break
             vals.append(acc)
             alphas.append(1.0 - T)
-            pix_ids.append((vv * width + uu).reshape(-1))
+            pix_ids.append(vv * width + uu)
     img = torch.zeros(height * width, C, dtype=dtype, device=device)
     alpha = torch.zeros(height * width, dtype=dtype, device=device)
     if vals:
