@@ -119,11 +119,21 @@ def _train(scene, tmp_path, name: str, extra: dict | None = None) -> Trainer:
     return t
 
 
-def test_training_is_unit_free(sphere_48, tmp_path):
+# (splat order, tolerance on means / k in radii, on log-scales and opacity logits). Plane
+# order sorts each pixel's splats by where their planes meet its ray: the splats of one
+# smooth surface meet it at nearly the same depth, so float32 rounding of the scaled means
+# swaps some near-ties, and a swap moves the pixel's colour by α_a α_b (c_a − c_b)
+# (measured in mm: means 2.3e-4 of the radius, opacity logits 6.8e-3). A unit bug (a
+# constant in world units) moves them by percents of the radius.
+ORDERS = [("centre", 1e-4, 1e-3), ("auto", 1e-3, 2e-2)]
+
+
+@pytest.mark.parametrize(("order", "mean_tol", "tol"), ORDERS, ids=[o[0] for o in ORDERS])
+def test_training_is_unit_free(sphere_48, tmp_path, order: str, mean_tol: float, tol: float):
     """30 iterations in mm, m and km (all phases, densification, multi-view loss on): the
-    same Gaussian count, means / k equal to 1e-4 of the radius, log-scales − log k and
-    opacity logits equal to 1e-3, the position lr set by the trainer ∝ k."""
-    mv = {"plan_overrides": {"multi_view": True}}  # a masked scene's plan drops it
+    same Gaussian count, means / k equal to ``mean_tol`` of the radius, log-scales − log k
+    and opacity logits equal to ``tol``, the position lr set by the trainer ∝ k."""
+    mv = {"plan_overrides": {"multi_view": True}, "splat_order": order}
     runs = {k: _train(scaled_scene(sphere_48, k), tmp_path, f"k{k:g}", mv) for k in UNITS}
     ref = runs[1.0]
     assert ref.plan.multi_view.value, "the multi-view loss must be part of this run"
@@ -139,6 +149,6 @@ def test_training_is_unit_free(sphere_48, tmp_path):
         dm = float(((pk["means"] / k - p1["means"]).abs().max()) / r)
         ds = float((pk["log_scales"] - math.log(k) - p1["log_scales"]).abs().max())
         do = float((pk["opacity_logits"] - p1["opacity_logits"]).abs().max())
-        assert dm < 1e-4, f"k={k}: means differ by {dm:.2e} of the radius"
-        assert ds < 1e-3, f"k={k}: log-scales differ by {ds:.2e}"
-        assert do < 1e-3, f"k={k}: opacity logits differ by {do:.2e}"
+        assert dm < mean_tol, f"k={k}: means differ by {dm:.2e} of the radius"
+        assert ds < tol, f"k={k}: log-scales differ by {ds:.2e}"
+        assert do < tol, f"k={k}: opacity logits differ by {do:.2e}"
