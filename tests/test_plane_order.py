@@ -10,6 +10,7 @@ from core.config import TrainConfig, saved_config
 from core.errors import BackendUnavailableError
 from core.model.schedule import phase_at
 from core.render.raster import bin_gaussians, covariances_from, project_gaussians, rasterize
+from core.render.raster import plane_order
 from core.render.raster.plane_order import REACH_SIGMAS, plane_keys
 from core.scene.cameras import Camera, Intrinsics
 from tests.gsplat_twin import twin_as_cuda  # noqa: F401  (fixture)
@@ -69,12 +70,32 @@ def _random_scene(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, 
     return means, quats, scales, op, feats
 
 
+def _kept_tiles(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    """Record how many tiles each forward kept its runs for."""
+    kept: list[int] = []
+    forward = plane_order._forward_worker
+
+    def spy(*args):  # the last argument is tile_kept
+        forward(*args)
+        if args[0] == 0:
+            kept.append(args[-1])
+
+    monkeypatch.setattr(plane_order, "_forward_worker", spy)
+    return kept
+
+
 @pytest.mark.parametrize(
     ("dtype", "tol"), [(torch.float64, 1e-12), (torch.float32, 2e-5)], ids=["f64", "f32"]
 )
+@pytest.mark.parametrize("store", ["every tile", "no tile", "some tiles"])
 def test_compiled_plane_order_equals_the_reference_forward_and_backward(
-    dtype: torch.dtype, tol: float
+    dtype: torch.dtype, tol: float, store: str, monkeypatch: pytest.MonkeyPatch
 ) -> None:
+    """The backward reads the runs the forward kept, or rebuilds a tile's that did not
+    fit: both give the reference's gradients."""
+    budget = {"every tile": plane_order.RUN_STORE_BYTES, "no tile": 0, "some tiles": 9 * 256 * 12}
+    monkeypatch.setattr(plane_order, "RUN_STORE_BYTES", budget[store])
+    kept = _kept_tiles(monkeypatch)
     scene = _random_scene(400, dtype, seed=4)
     cam = _camera(48, 40)
     g = torch.Generator().manual_seed(9)
@@ -94,6 +115,10 @@ def test_compiled_plane_order_equals_the_reference_forward_and_backward(
         scale = float(g_ref.abs().max())
         assert scale > 0, name
         torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+    n_kept = int(kept[0].sum())  # of the 3 × 3 tiles of 16², each with contributors
+    assert {"every tile": n_kept == 9, "no tile": n_kept == 0, "some tiles": 0 < n_kept < 9}[
+        store
+    ], n_kept
     # the scene is one where the order matters: it changes the image
     centre = rasterize(*scene, cam, backend="cpu")
     assert float((centre.features - cpu[0]).abs().max()) > 0.05

@@ -23,7 +23,9 @@ The order is piecewise constant, so it carries no gradient: the weights are the 
 
 The torch reference (:func:`rasterize_reference_plane`) sorts per pixel with a stable
 argsort; the numba kernels (pixel-major: each pixel gathers its contributors from the
-tile list, insertion-sorts them and composites) are tested against it.
+tile list, insertion-sorts them and composites; the forward keeps the composited runs
+for the backward within ``RUN_STORE_BYTES``, which halves the backward's time) are
+tested against it.
 """
 
 from __future__ import annotations
@@ -230,11 +232,13 @@ def _fill_sorted(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
     mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Each pixel p's contributors (alpha ≥ 1/255) as tile-entry indices
+    """Each pixel p's contributors (alpha ≥ 1/255) as Gaussian indices
     ``cand_i[begin[p]:end[p]]`` sorted by plane depth (stable: entries arrive in tile
     order and ties keep it), with their Gaussian factor exp(power) in ``cand_g``.
     Gaussian-major over the entries with the compiled backend's culling ellipses (a
-    culling only: every visited pixel is tested with the reference formula)."""
+    culling only: every visited pixel is tested with the reference formula). Insertion
+    sort: the centre order is close to the plane order, so a heap (tried) was 2.6×
+    slower on the bench scene."""
     half, a_min, a_max = consts[0], consts[2], consts[3]
     npix = tile_size * tile_size
     for p in range(npix):
@@ -270,31 +274,31 @@ def _fill_sorted(
                     alpha = a_max
                 if not (alpha >= a_min):
                     continue
-                p = (py - y0) * tile_size + (px - x0)
                 key = d / (nx * rx[px - x0] + ny_ry)
                 if not math.isfinite(key):
                     key = z
                 key = min(max(key, z - h), z + h)
+                p = (py - y0) * tile_size + (px - x0)
                 j = end[p]
                 s0 = begin[p]
-                while j > s0 and cand_key[j - 1] > key:
-                    cand_key[j] = cand_key[j - 1]
+                while j > s0 and cand_key[j - 1] > key:  # entries arrive in tile order,
+                    cand_key[j] = cand_key[j - 1]  # nearly sorted: a few shifts
                     cand_i[j] = cand_i[j - 1]
                     cand_g[j] = cand_g[j - 1]
                     j -= 1
                 cand_key[j] = key
-                cand_i[j] = i
+                cand_i[j] = g
                 cand_g[j] = G
                 end[p] += 1
 
 
 @njit(nogil=True, fastmath=False, cache=True)
-def _tile_order(
+def _tile_runs(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
     mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
 ):  # fmt: skip  # pragma: no cover - numba
-    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`),
-    with the candidate arrays grown first where the tile needs more room; returns them."""
+    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`), with
+    the candidate arrays grown first where the tile needs more room; returns them."""
     for px in range(x0, x1):
         rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
     for py in range(y0, y1):
@@ -303,7 +307,7 @@ def _tile_order(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
     )
     if total > cand_i.shape[0]:
-        cand_i = np.empty(2 * total, np.int64)
+        cand_i = np.empty(2 * total, np.int32)
         cand_key = np.empty(2 * total, np.float64)
         cand_g = np.empty(2 * total, cand_g.dtype)
     _fill_sorted(
@@ -321,7 +325,7 @@ def _scratch(tile_size, opac):  # pragma: no cover - numba
     return (
         np.zeros(npix + 1, np.int64),
         np.zeros(npix, np.int64),
-        np.empty(64 * npix, np.int64),
+        np.empty(64 * npix, np.int32),
         np.empty(64 * npix, np.float64),
         np.empty(64 * npix, opac.dtype),
         np.empty(tile_size, np.float64),
@@ -341,31 +345,40 @@ def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
 def _forward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
     xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
+    run_g, run_G, run_at, tile_kept,
 ):  # fmt: skip  # pragma: no cover - numba
     """Tiles w, w + n_workers, ...: each pixel's contributors in plane order, composited
     front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
-    contributors composited, in that order."""
+    contributors composited. Where ``run_g`` has room (``run_g.shape[0] // n_tiles``
+    entries a tile) the composited runs are kept for the backward: pixel (y, x)'s
+    Gaussians and exp(power) at ``run_at[y, x]`` on, and ``tile_kept[t] = 1``."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
+    room = run_g.shape[0] // n_tiles
     begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
-        cand_i, cand_key, cand_g = _tile_order(
+        cand_i, cand_key, cand_g = _tile_runs(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
             consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
         )  # fmt: skip
+        kept = room > 0
+        at = t * room
+        stop = at + room
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tile_size + (px - x0)
+                run_at[py, px] = at
                 T = one
                 m_used = 0
                 for j in range(begin[p], end[p]):
-                    g = gauss_ids[cand_i[j]]
-                    alpha = opac[g] * cand_g[j]
+                    g = cand_i[j]
+                    G = cand_g[j]
+                    alpha = opac[g] * G
                     if alpha > a_max:
                         alpha = a_max
                     test_T = T * (one - alpha)
@@ -376,17 +389,63 @@ def _forward_worker(
                         out_feat[py, px, ch] += feats[g, ch] * wgt
                     T = test_T
                     m_used += 1
+                    if kept:
+                        if at < stop:
+                            run_g[at] = g
+                            run_G[at] = G
+                            at += 1
+                        else:
+                            kept = False
                 out_T[py, px] = T
                 out_last[py, px] = m_used
+        tile_kept[t] = 1 if kept else 0
+
+
+@njit(nogil=True, fastmath=False, cache=True, inline="always")
+def _contribution_backward(
+    g, G, T_cur, R, ga_T, px, py, w, means2d, conics, opac, feats, xs, ys, a_max,
+    grad_feat, gbuf,
+):  # fmt: skip  # pragma: no cover - numba
+    """One contributor's gradients, back to front (the compiled backend's formulas);
+    returns the transmittance before it and the colour behind it."""
+    n_ch = feats.shape[1]
+    raw = opac[g] * G
+    alpha = a_max if raw > a_max else raw
+    al = np.float64(alpha)
+    one_m = 1.0 - al
+    T_before = T_cur / one_m
+    wgt = al * T_before
+    gf = 0.0
+    for ch in range(n_ch):
+        gc = np.float64(grad_feat[py, px, ch])
+        gf += gc * np.float64(feats[g, ch])
+        gbuf[w, g, 6 + ch] += wgt * gc
+    d_alpha = T_before * gf + (ga_T - R) / one_m
+    R += wgt * gf
+    if raw > a_max:
+        return T_before, R  # clamped: alpha depends on neither o nor the footprint
+    d_pow = al * d_alpha
+    dxd = np.float64(xs[px] - means2d[g, 0])
+    dyd = np.float64(ys[py] - means2d[g, 1])
+    ad, bd, cd = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+    gbuf[w, g, 0] += (ad * dxd + bd * dyd) * d_pow
+    gbuf[w, g, 1] += (cd * dyd + bd * dxd) * d_pow
+    gbuf[w, g, 2] -= 0.5 * dxd * dxd * d_pow
+    gbuf[w, g, 3] -= dxd * dyd * d_pow
+    gbuf[w, g, 4] -= 0.5 * dyd * dyd * d_pow
+    gbuf[w, g, 5] += np.float64(G) * d_alpha
+    return T_before, R
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _backward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
-    xs, ys, consts, mode, geo, planes, intr, final_T, last, grad_feat, grad_alpha, gbuf,
+    xs, ys, consts, mode, geo, planes, intr, final_T, last, run_g, run_G, run_at, tile_kept,
+    grad_feat, grad_alpha, gbuf,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Each pixel's contributors in the forward's order again, back to front (the
-    compiled backend's formulas); adds into gbuf[w, gaussian]."""
+    """Each pixel's contributors in the forward's order, back to front: the forward's
+    kept runs, or (a tile it had no room for) the runs rebuilt. Adds into
+    gbuf[w, gaussian]."""
     height, width, n_ch = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     a_max = consts[3]
@@ -396,52 +455,46 @@ def _backward_worker(
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
-        cand_i, cand_key, cand_g = _tile_order(
-            lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
-            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
-        )  # fmt: skip
+        kept = tile_kept[t] == 1
+        if not kept:
+            cand_i, cand_key, cand_g = _tile_runs(
+                lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
+                consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+            )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
                 m_used = last[py, px]
                 if m_used == 0:
                     continue
-                p = (py - y0) * tile_size + (px - x0)
                 T_cur = np.float64(final_T[py, px])
                 ga_T = np.float64(grad_alpha[py, px]) * T_cur
                 R = 0.0
+                if kept:
+                    at = run_at[py, px]
+                    for j in range(at + m_used - 1, at - 1, -1):
+                        T_cur, R = _contribution_backward(
+                            run_g[j], run_G[j], T_cur, R, ga_T, px, py, w, means2d, conics,
+                            opac, feats, xs, ys, a_max, grad_feat, gbuf,
+                        )  # fmt: skip
+                    continue
+                p = (py - y0) * tile_size + (px - x0)
                 for j in range(begin[p] + m_used - 1, begin[p] - 1, -1):
-                    g = gauss_ids[cand_i[j]]
-                    G = cand_g[j]
-                    raw = opac[g] * G
-                    alpha = a_max if raw > a_max else raw
-                    al = np.float64(alpha)
-                    one_m = 1.0 - al
-                    T_before = T_cur / one_m
-                    wgt = al * T_before
-                    gf = 0.0
-                    for ch in range(n_ch):
-                        gc = np.float64(grad_feat[py, px, ch])
-                        gf += gc * np.float64(feats[g, ch])
-                        gbuf[w, g, 6 + ch] += wgt * gc
-                    d_alpha = T_before * gf + (ga_T - R) / one_m
-                    R += wgt * gf
-                    T_cur = T_before
-                    if raw > a_max:
-                        continue  # clamped: alpha depends on neither o nor the footprint
-                    d_pow = al * d_alpha
-                    dxd = np.float64(xs[px] - means2d[g, 0])
-                    dyd = np.float64(ys[py] - means2d[g, 1])
-                    ad, bd, cd = (
-                        np.float64(conics[g, 0]),
-                        np.float64(conics[g, 1]),
-                        np.float64(conics[g, 2]),
-                    )
-                    gbuf[w, g, 0] += (ad * dxd + bd * dyd) * d_pow
-                    gbuf[w, g, 1] += (cd * dyd + bd * dxd) * d_pow
-                    gbuf[w, g, 2] -= 0.5 * dxd * dxd * d_pow
-                    gbuf[w, g, 3] -= dxd * dyd * d_pow
-                    gbuf[w, g, 4] -= 0.5 * dyd * dyd * d_pow
-                    gbuf[w, g, 5] += np.float64(G) * d_alpha
+                    T_cur, R = _contribution_backward(
+                        cand_i[j], cand_g[j], T_cur, R, ga_T, px, py, w, means2d,
+                        conics, opac, feats, xs, ys, a_max, grad_feat, gbuf,
+                    )  # fmt: skip
+
+
+# Memory the forward may keep its composited runs in for the backward (which otherwise
+# rebuilds them: about half its time); a tile whose runs do not fit is rebuilt.
+RUN_STORE_BYTES = 64 * 2**20
+
+
+def _run_room(n_tiles: int, tile_size: int, npdt: type) -> int:
+    """Entries a tile may keep: an equal share of the budget (the buffers are allocated
+    untouched, so only what the runs fill costs memory)."""
+    per_entry = 4 + np.dtype(npdt).itemsize
+    return int(RUN_STORE_BYTES // max(1, n_tiles * per_entry))
 
 
 class PlaneOrderComposite(torch.autograd.Function):
@@ -458,6 +511,7 @@ class PlaneOrderComposite(torch.autograd.Function):
         width: int,
         height: int,
         order: PlaneKeys,
+        keep_runs: bool = True,
     ) -> tuple[Tensor, Tensor]:
         dtype = _compute_dtype(means2d, conics, opacities, features)
         n_ch = features.shape[1]
@@ -472,14 +526,22 @@ class PlaneOrderComposite(torch.autograd.Function):
             intr = np.array([order.fx, order.fy, order.cx, order.cy], np.float64)
             planes = order.planes.detach().to(torch.float64).contiguous().numpy()
             extra = (planes, intr)
-            args = (*setup.args(), *extra, out_feat, out_T, out_last)
+            n_tiles = int(bins.offsets.numel()) - 1
+            room = _run_room(n_tiles, setup.tile_size, npdt) if keep_runs else 0
+            runs = (
+                np.empty(n_tiles * room, np.int32),
+                np.empty(n_tiles * room, npdt),
+                np.empty((height, width), np.int64),
+                np.zeros(n_tiles, np.int8),
+            )
+            args = (*setup.args(), *extra, out_feat, out_T, out_last, *runs)
             run_workers(_forward_worker, kernel_threads(), args)
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.setup, ctx.extra = setup, extra
         ctx.meta = (dtype, width, height, n_ch)
         ctx.in_dtypes = (means2d.dtype, conics.dtype, opacities.dtype, features.dtype)
         ctx.shapes = (means2d.shape, conics.shape, opacities.shape, features.shape)
-        ctx.state = (out_T, out_last)
+        ctx.state = (out_T, out_last, *runs) if setup is not None else None
         return torch.from_numpy(out_feat), 1.0 - torch.from_numpy(out_T)
 
     @staticmethod
@@ -493,7 +555,7 @@ class PlaneOrderComposite(torch.autograd.Function):
         n_workers = kernel_threads() if setup is not None and n > 0 else 1
         with scratch_zeros((n_workers, n, 6 + n_ch)) as gbuf:
             if setup is not None and n > 0:
-                out_T, out_last = ctx.state
+                out_T, out_last, *runs = ctx.state
                 gf = (
                     np.zeros((height, width, n_ch), out_T.dtype)
                     if grad_feat is None
@@ -504,7 +566,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                     if grad_alpha is None
                     else _np(grad_alpha, dtype)
                 )
-                args = (*setup.args(), *ctx.extra, out_T, out_last, gf, ga, gbuf)
+                args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf)
                 run_workers(_backward_worker, n_workers, args)
             widths = (_G_A - _G_MX, _G_O - _G_A, _G_F - _G_O, n_ch)
             parts = [
@@ -517,7 +579,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                     parts, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
                 )
             ]
-        return (*out, None, None, None, None)
+        return (*out, None, None, None, None, None)
 
 
 def rasterize_cpu_plane(
@@ -531,5 +593,6 @@ def rasterize_cpu_plane(
 ) -> tuple[Tensor, Tensor]:
     """The compiled backend's compositing in per-pixel plane order (float32 or float64)."""
     tensors = (proj.means2d, proj.conics, opacities.reshape(-1), features)
-    feats, alpha = PlaneOrderComposite.apply(*tensors, bins, width, height, order)
+    keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
+    feats, alpha = PlaneOrderComposite.apply(*tensors, bins, width, height, order, keep)
     return feats.to(features.dtype), alpha.to(features.dtype)
