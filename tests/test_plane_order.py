@@ -9,8 +9,13 @@ import torch
 from core.config import TrainConfig, saved_config
 from core.errors import BackendUnavailableError
 from core.model.schedule import phase_at
-from core.render.raster import bin_gaussians, covariances_from, project_gaussians, rasterize
-from core.render.raster import plane_order
+from core.render.raster import (
+    bin_gaussians,
+    covariances_from,
+    plane_order,
+    project_gaussians,
+    rasterize,
+)
 from core.render.raster.plane_order import REACH_SIGMAS, plane_keys
 from core.scene.cameras import Camera, Intrinsics
 from tests.gsplat_twin import twin_as_cuda  # noqa: F401  (fixture)

@@ -446,7 +446,7 @@ def _backward_worker(
     """Each pixel's contributors in the forward's order, back to front: the forward's
     kept runs, or (a tile it had no room for) the runs rebuilt. Adds into
     gbuf[w, gaussian]."""
-    height, width, n_ch = grad_feat.shape
+    height, width, _ = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     a_max = consts[3]
     begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
