@@ -12,8 +12,8 @@ All cases run in one process on the same Gaussians, side by side:
 * ``G-buffer``: our 9-channel pass (base, normal, plane distance, w_r, centre z).
 * ``deferred render``: G-buffer + env-map shading, no gradients (the viewer's frame).
 * ``full step``: the multi-view phase, the heaviest, composited in the default
-  ``splat_order`` (``--compare-order`` times another order beside it): G-buffer,
-  deferred shading, RGB,
+  ``splat_order`` (plane order on CPU, centre order on CUDA; ``--compare-order`` times
+  another order beside it): G-buffer, deferred shading, RGB,
   scale, single-view and multi-view losses (a second, depth-only G-buffer for the
   neighbour), backward and Adam; and the same step without L_multi, as the scene plan
   runs a capture whose every view is masked.
@@ -295,7 +295,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument(
         "--compare-order",
         choices=["centre", "slab", "plane"],
-        help="also time the full step with this TrainConfig.splat_order, beside the default",
+        help="also time the full step with this TrainConfig.splat_order, beside the default "
+        "('auto': plane order on the cpu backend, centre order on cuda)",
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)

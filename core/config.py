@@ -303,12 +303,12 @@ class TrainConfig(_Strict):
         "then shrinks the surface to match them)",
     )
     splat_order: Literal["auto", "centre", "slab", "plane"] = Field(
-        "centre",
+        "auto",
         description="order splats are composited in at each pixel: 'plane', where the "
         "pixel's ray meets each splat's plane (core/render/raster/plane_order.py; cpu and "
         "reference backends), so a surface's colours and normals are not weighted toward "
         "the splats whose centres lie toward the camera; 'centre', by centre depth (3DGS, "
-        "every backend; the default); 'auto', plane order where the backend has it, centre "
+        "every backend); 'auto' (default), plane order where the backend has it, centre "
         "order on cuda (gsplat sorts by itself); 'slab', centre depth rounded up to slabs "
         "two median splat sizes thick (an experiment; docs/benchmarks.md)",
     )

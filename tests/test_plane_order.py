@@ -244,6 +244,7 @@ def test_auto_is_plane_order_where_the_backend_has_it_and_centre_order_on_gsplat
 
 
 def test_runs_saved_before_plane_order_keep_rendering_in_centre_order() -> None:
-    old = saved_config(TrainConfig(splat_order="auto").model_dump(exclude={"splat_order"}))
+    assert TrainConfig().splat_order == "auto"
+    old = saved_config(TrainConfig().model_dump(mode="json", exclude={"splat_order"}))
     assert old.splat_order == "centre"
     assert saved_config(TrainConfig(splat_order="plane").model_dump()).splat_order == "plane"
