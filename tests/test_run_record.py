@@ -91,8 +91,9 @@ def test_geometry_error_against_truth_and_the_chamfer_probe_agrees_with_eval(
     assert ev.images_and_geometry(bad)["normal_error_deg"] > row["normal_error_deg"] + 10
     # the signed depth error tells a shrunk surface (behind the truth: +) from a right one
     # (large discs' tangent planes cross the rays a little in front of a convex surface:
-    # -0.007 here, a sixth of a pixel's footprint)
-    assert abs(row["depth_bias"]) < 0.01
+    # -0.007 here in centre order, a sixth of a pixel's footprint; -0.011 in plane order,
+    # the default, where each pixel composites the tangent plane its ray meets first)
+    assert abs(row["depth_bias"]) < 0.015
     small = disc_model(gt_scene)
     with torch.no_grad():
         small.gaussians.params["means"].mul_(0.97)  # 0.018 inside the radius-0.6 sphere

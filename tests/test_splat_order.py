@@ -103,7 +103,7 @@ def test_order_slab_is_twice_the_median_largest_extent() -> None:
 
 
 def test_the_config_switches_slab_order_in_every_phase() -> None:
-    assert phase_at(TrainConfig(iterations=100), 50).splat_order == "centre"
+    assert phase_at(TrainConfig(iterations=100), 50).splat_order == "auto"  # the default
     cfg = TrainConfig(iterations=100, splat_order="slab")
     assert all(phase_at(cfg, it).splat_order == "slab" for it in (0, 50, 99))
     with pytest.raises(ValueError, match="splat_order"):

@@ -321,6 +321,7 @@ def render_gbuffer_tensors(
         eps2d=lowpass,
         order_slab=order_slab(scales, covariances) if splat_order == "slab" else None,
         plane_order="auto" if splat_order == "auto" else splat_order == "plane",
+        plane_normals=normals_world,
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

@@ -111,20 +111,33 @@ def plane_keys(
     scales: Tensor | None,
     camera: Camera,
     covariances: Tensor | None = None,
+    normals: Tensor | None = None,
 ) -> PlaneKeys:
-    """Each splat's camera-space plane, centre depth and reach (no gradient)."""
+    """Each splat's camera-space plane, centre depth and reach (no gradient).
+
+    ``normals`` (N, 3, world, any sign): the planes' normals where the caller has them
+    (the G-buffer's Eq. 6 normals), so that a model rendered from its rotations and the
+    same model rendered from frozen covariances sort their splats alike; otherwise the
+    axis of the smallest scale, or of the covariance's smallest eigenvalue."""
     with torch.no_grad():
         if quats is not None and scales is not None:
-            R = quat_to_rotmat(normalize_quats(quats.detach().to(torch.float64)))
             s = scales.detach().to(torch.float64)
-            n_world = torch.gather(R, 2, s.argmin(-1)[:, None, None].expand(-1, 3, 1))[..., 0]
             reach = REACH_SIGMAS * s.amax(-1)
+            if normals is None:
+                R = quat_to_rotmat(normalize_quats(quats.detach().to(torch.float64)))
+                k = s.argmin(-1)[:, None, None].expand(-1, 3, 1)
+                normals = torch.gather(R, 2, k)[..., 0]
         elif covariances is not None:
-            evals, evecs = torch.linalg.eigh(covariances.detach().to(torch.float64))
-            n_world = evecs[..., 0]
+            covs = covariances.detach().to(torch.float64)
+            if normals is None:
+                evals, evecs = torch.linalg.eigh(covs)
+                normals = evecs[..., 0]
+            else:
+                evals = torch.linalg.eigvalsh(covs)
             reach = REACH_SIGMAS * evals[..., -1].clamp_min(0.0).sqrt()
         else:
             raise ValueError("plane order needs quats and scales, or covariances")
+        n_world = normals.detach().to(torch.float64)
         Rc = camera.R.to(torch.float64)
         tc = camera.t.to(torch.float64)
         mu = means.detach().to(torch.float64) @ Rc.T + tc
