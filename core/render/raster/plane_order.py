@@ -368,7 +368,7 @@ def _forward_worker(
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
-    room = run_g.shape[0] // n_tiles
+    room = run_g.shape[0] // max(n_tiles, 1)
     begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
