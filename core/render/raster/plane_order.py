@@ -503,7 +503,7 @@ def _backward_worker(
 RUN_STORE_BYTES = 64 * 2**20
 
 
-def _run_room(n_tiles: int, tile_size: int, npdt: type) -> int:
+def _run_room(n_tiles: int, npdt: type) -> int:
     """Entries a tile may keep: an equal share of the budget (the buffers are allocated
     untouched, so only what the runs fill costs memory)."""
     per_entry = 4 + np.dtype(npdt).itemsize
@@ -540,7 +540,7 @@ class PlaneOrderComposite(torch.autograd.Function):
             planes = order.planes.detach().to(torch.float64).contiguous().numpy()
             extra = (planes, intr)
             n_tiles = int(bins.offsets.numel()) - 1
-            room = _run_room(n_tiles, setup.tile_size, npdt) if keep_runs else 0
+            room = _run_room(n_tiles, npdt) if keep_runs else 0
             runs = (
                 np.empty(n_tiles * room, np.int32),
                 np.empty(n_tiles * room, npdt),
