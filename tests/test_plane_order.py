@@ -129,6 +129,79 @@ def test_compiled_plane_order_equals_the_reference_forward_and_backward(
     assert float((centre.features - cpu[0]).abs().max()) > 0.05
 
 
+def _opaque_wall(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:
+    """Layers of nearly opaque flat splats filling the whole view: every pixel saturates
+    within its first few layers, so most of each tile list lies behind the stop."""
+    g = torch.Generator().manual_seed(seed)
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * torch.tensor(
+        [3.6, 3.2, 1.5], dtype=dtype
+    )
+    means[:, 2] += 3.0
+    quats = torch.randn(n, 4, generator=g, dtype=dtype)
+    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.15 + 0.08
+    scales[:, 2] = 1e-3
+    op = 0.75 + 0.25 * torch.rand(n, generator=g, dtype=dtype)
+    feats = torch.rand(n, 3, generator=g, dtype=dtype)
+    return means, quats, scales, op, feats
+
+
+def _transmittance_through_all(scene: tuple[torch.Tensor, ...], cam: Camera) -> torch.Tensor:
+    """(H, W) product of (1 - alpha) over every contributor of each pixel, in any order:
+    below T_MIN where the compositing stops before the pixel's last contributor."""
+    means, quats, scales, op, _ = (t.detach().double() for t in scene)
+    w, h = cam.intrinsics.width, cam.intrinsics.height
+    proj = project_gaussians(means, covariances_from(quats, scales), cam)
+    bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, w, h, 16)
+    v, u = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
+    T = torch.ones(h, w, dtype=torch.float64)
+    for py in range(h):
+        for px in range(w):
+            ids = bins.tile((py // 16) * bins.tiles_x + px // 16).long()
+            dx = u[py, px] - proj.means2d[ids, 0]
+            dy = v[py, px] - proj.means2d[ids, 1]
+            c = proj.conics[ids]
+            power = -0.5 * (c[:, 0] * dx * dx + c[:, 2] * dy * dy) - c[:, 1] * dx * dy
+            alpha = torch.clamp(op[ids] * torch.exp(power.clamp_max(0)), max=0.99)
+            live = (power <= 0) & (alpha >= 1 / 255)
+            T[py, px] = torch.prod(1 - alpha[live])
+    return T
+
+
+@pytest.mark.parametrize(
+    ("dtype", "tol"), [(torch.float64, 1e-12), (torch.float32, 2e-5)], ids=["f64", "f32"]
+)
+@pytest.mark.parametrize("store", ["every tile", "no tile"])
+def test_saturated_pixels_stop_early_and_still_equal_the_reference(
+    dtype: torch.dtype, tol: float, store: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The kernels skip what lies behind a saturated pixel's stop (and a tile's whole
+    remaining list once all its pixels have stopped): forward and gradients are the
+    reference's, which composites every contributor's sorted run."""
+    if store == "no tile":
+        monkeypatch.setattr(plane_order, "RUN_STORE_BYTES", 0)
+    scene = _opaque_wall(2000, dtype, seed=11)
+    cam = _camera(48, 40)
+    g = torch.Generator().manual_seed(3)
+    w_feat = torch.rand(40, 48, 3, generator=g, dtype=dtype)
+    w_alpha = torch.rand(40, 48, generator=g, dtype=dtype)
+    results = {}
+    for backend in ("reference", "cpu"):
+        leaves = [t.clone().requires_grad_(True) for t in scene]
+        r = rasterize(*leaves, cam, backend=backend, plane_order=True)
+        ((r.features * w_feat).sum() + (r.alpha * w_alpha).sum()).backward()
+        results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
+    ref, cpu = results["reference"], results["cpu"]
+    # the case it is written for: (nearly) every pixel saturates
+    assert float((_transmittance_through_all(scene, cam) < 1e-4).double().mean()) > 0.95
+    torch.testing.assert_close(cpu[0], ref[0], atol=tol, rtol=tol)
+    torch.testing.assert_close(cpu[1], ref[1], atol=tol, rtol=tol)
+    for name, g_cpu, g_ref in zip(("means", "quats", "scales", "opacities", "features"),
+                                  cpu[2], ref[2], strict=True):  # fmt: skip
+        scale = float(g_ref.abs().max())
+        assert scale > 0, name
+        torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+
+
 def test_plane_order_matches_a_pixel_by_pixel_sort_written_out() -> None:
     """Pixels recomputed from first principles: the contributors of the pixel's tile
     list sorted by where the ray meets each plane (clamped to the splat's reach), then

@@ -78,6 +78,10 @@ __all__ = ["PlaneKeys", "plane_keys", "rasterize_cpu_plane", "rasterize_referenc
 # A splat's plane is searched for within this many of its largest standard deviations
 # of its centre along the ray (its alpha is below 1/255 beyond about 3.3 σ).
 REACH_SIGMAS = 3.0
+# Early termination (:func:`_fill_sorted`): a saturated pixel's run is walked again after
+# this many insertions, and the tile's stop is looked for every this many list entries.
+_WALK_EVERY = 4
+_TILE_CHECK_EVERY = 32
 
 
 @dataclass
@@ -243,7 +247,8 @@ def _count_candidates(
 @njit(nogil=True, fastmath=False, cache=True)
 def _fill_sorted(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g,
+    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+    since, reach_min,
 ):  # fmt: skip  # pragma: no cover - numba
     """Each pixel p's contributors (alpha ≥ 1/255) as Gaussian indices
     ``cand_i[begin[p]:end[p]]`` sorted by plane depth (stable: entries arrive in tile
@@ -251,12 +256,44 @@ def _fill_sorted(
     Gaussian-major over the entries with the compiled backend's culling ellipses (a
     culling only: every visited pixel is tested with the reference formula). Insertion
     sort: the centre order is close to the plane order, so a heap (tried) was 2.6×
-    slower on the bench scene."""
-    half, a_min, a_max = consts[0], consts[2], consts[3]
+    slower on the bench scene.
+
+    Early termination, exact: once a pixel's sorted run saturates (the compositing
+    would stop at an entry with key ``stop_key[p]``), an entry whose key is not below
+    that lands behind it and is never composited, so it is not inserted (nor its
+    exp() taken where even its nearest possible key, z - h, is not below); the entries
+    behind the stop are dropped. The run is walked again (:func:`_saturate`) after
+    every ``_WALK_EVERY`` insertions, and first once the product of all its (1 - alpha),
+    which does not depend on the order, falls below T_MIN. The tile stops early where
+    every pixel has saturated in front of the nearest plane any later entry can
+    have (``reach_min``: suffix minima of z - h)."""
+    half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
     npix = tile_size * tile_size
+    inf = np.inf
     for p in range(npix):
         end[p] = begin[p]
+        stop_key[p] = inf
+        t_all[p] = 1.0
+        since[p] = 0
+    n = hi - lo
+    lowest = inf
+    for k in range(n - 1, -1, -1):
+        g = gauss_ids[lo + k]
+        zlo = planes[g, 4] - planes[g, 5]
+        if zlo < lowest:
+            lowest = zlo
+        reach_min[k] = lowest
+    tile_stop = inf
     for i in range(lo, hi):
+        if (i - lo) % _TILE_CHECK_EVERY == 0 and i > lo:
+            tile_stop = -inf
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    k_p = stop_key[(py - y0) * tile_size + (px - x0)]
+                    if k_p > tile_stop:
+                        tile_stop = k_p
+        if reach_min[i - lo] >= tile_stop:
+            break
         g = gauss_ids[i]
         m = mode[g]
         if m == 0:
@@ -272,11 +309,15 @@ def _fill_sorted(
         a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
         nx, ny, nz, d = planes[g, 0], planes[g, 1], planes[g, 2], planes[g, 3]
         z, h = planes[g, 4], planes[g, 5]
+        zlo = z - h
         for py in range(r0, r1):
             q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
             dy = ys[py] - my
             ny_ry = ny * ry[py - y0] + nz
             for px in range(q0, q1):
+                p = (py - y0) * tile_size + (px - x0)
+                if zlo >= stop_key[p]:
+                    continue
                 dx = xs[px] - mx
                 power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
                 if not (power <= 0):
@@ -290,8 +331,9 @@ def _fill_sorted(
                 key = d / (nx * rx[px - x0] + ny_ry)
                 if not math.isfinite(key):
                     key = z
-                key = min(max(key, z - h), z + h)
-                p = (py - y0) * tile_size + (px - x0)
+                key = min(max(key, zlo), z + h)
+                if key >= stop_key[p]:
+                    continue
                 j = end[p]
                 s0 = begin[p]
                 while j > s0 and cand_key[j - 1] > key:  # entries arrive in tile order,
@@ -303,15 +345,45 @@ def _fill_sorted(
                 cand_i[j] = g
                 cand_g[j] = G
                 end[p] += 1
+                since[p] += 1
+                t_all[p] *= 1.0 - np.float64(alpha)
+                if since[p] >= _WALK_EVERY or (t_all[p] < t_min and stop_key[p] == inf):
+                    since[p] = 0
+                    if t_all[p] < t_min:
+                        stop_key[p] = _saturate(
+                            begin[p], end, p, cand_i, cand_key, cand_g, opac, one, a_max, t_min
+                        )
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _saturate(
+    s0, end, p, cand_i, cand_key, cand_g, opac, one, a_max, t_min
+):  # fmt: skip  # pragma: no cover - numba
+    """Walk pixel p's sorted run front to back as the compositing does; where it stops
+    (the entry that takes the transmittance below T_MIN) drop what lies behind and
+    return that entry's key, else +inf."""
+    T = one
+    for j in range(s0, end[p]):
+        alpha = opac[cand_i[j]] * cand_g[j]
+        if alpha > a_max:
+            alpha = a_max
+        test_T = T * (one - alpha)
+        if test_T < t_min:
+            end[p] = j + 1
+            return cand_key[j]
+        T = test_T
+    return np.inf
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _tile_runs(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all,
+    since, reach_min,
 ):  # fmt: skip  # pragma: no cover - numba
     """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`), with
-    the candidate arrays grown first where the tile needs more room; returns them."""
+    the candidate arrays grown first where the tile needs more room; returns them and
+    the suffix-minimum buffer (grown to the tile's list)."""
     for px in range(x0, x1):
         rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
     for py in range(y0, y1):
@@ -323,17 +395,21 @@ def _tile_runs(
         cand_i = np.empty(2 * total, np.int32)
         cand_key = np.empty(2 * total, np.float64)
         cand_g = np.empty(2 * total, cand_g.dtype)
+    if hi - lo > reach_min.shape[0]:
+        reach_min = np.empty(2 * (hi - lo), np.float64)
     _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+        since, reach_min,
     )  # fmt: skip
-    return cand_i, cand_key, cand_g
+    return cand_i, cand_key, cand_g, reach_min
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _scratch(tile_size, opac):  # pragma: no cover - numba
     """A worker's buffers: run bounds, room for 64 contributors a pixel (grown per tile
-    where needed), the tile's ray slopes."""
+    where needed), the tile's ray slopes, the early termination's per-pixel state and
+    the tile list's suffix minima (grown where needed)."""
     npix = tile_size * tile_size
     return (
         np.zeros(npix + 1, np.int64),
@@ -343,6 +419,10 @@ def _scratch(tile_size, opac):  # pragma: no cover - numba
         np.empty(64 * npix, opac.dtype),
         np.empty(tile_size, np.float64),
         np.empty(tile_size, np.float64),
+        np.empty(npix, np.float64),
+        np.empty(npix, np.float64),
+        np.empty(npix, np.int32),
+        np.empty(1024, np.float64),
     )
 
 
@@ -358,26 +438,30 @@ def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
 def _forward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
     xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
-    run_g, run_G, run_at, tile_kept,
+    run_g, run_G, run_T, run_at, tile_kept,
 ):  # fmt: skip  # pragma: no cover - numba
     """Tiles w, w + n_workers, ...: each pixel's contributors in plane order, composited
     front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
     contributors composited. Where ``run_g`` has room (``run_g.shape[0] // n_tiles``
     entries a tile) the composited runs are kept for the backward: pixel (y, x)'s
-    Gaussians and exp(power) at ``run_at[y, x]`` on, and ``tile_kept[t] = 1``."""
+    Gaussians, exp(power) and transmittance in front of each at ``run_at[y, x]`` on,
+    and ``tile_kept[t] = 1``."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
     room = run_g.shape[0] // max(n_tiles, 1)
-    begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
+    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
+        tile_size, opac
+    )
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
-        cand_i, cand_key, cand_g = _tile_runs(
+        cand_i, cand_key, cand_g, reach_min = _tile_runs(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
             consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+            stop_key, t_all, since, reach_min,
         )  # fmt: skip
         kept = room > 0
         at = t * room
@@ -400,15 +484,16 @@ def _forward_worker(
                     wgt = alpha * T
                     for ch in range(n_ch):
                         out_feat[py, px, ch] += feats[g, ch] * wgt
-                    T = test_T
-                    m_used += 1
                     if kept:
                         if at < stop:
                             run_g[at] = g
                             run_G[at] = G
+                            run_T[at] = T
                             at += 1
                         else:
                             kept = False
+                    T = test_T
+                    m_used += 1
                 out_T[py, px] = T
                 out_last[py, px] = m_used
         tile_kept[t] = 1 if kept else 0
@@ -416,17 +501,19 @@ def _forward_worker(
 
 @njit(nogil=True, fastmath=False, cache=True, inline="always")
 def _contribution_backward(
-    g, G, T_cur, R, ga_T, px, py, w, means2d, conics, opac, feats, xs, ys, a_max,
+    g, G, T_before, R, ga_T, px, py, w, means2d, conics, opac, feats, xs, ys, a_max,
     grad_feat, gbuf,
 ):  # fmt: skip  # pragma: no cover - numba
-    """One contributor's gradients, back to front (the compiled backend's formulas);
-    returns the transmittance before it and the colour behind it."""
+    """One contributor's gradients, back to front (the compiled backend's formulas),
+    given the transmittance in front of it; returns the colour behind it. The
+    transmittance comes from the forward rather than from dividing back from the
+    final one: that division chained each contributor to the next (a pixel-major
+    walk has nothing else to overlap it with) and was most of the backward's time."""
     n_ch = feats.shape[1]
     raw = opac[g] * G
     alpha = a_max if raw > a_max else raw
     al = np.float64(alpha)
     one_m = 1.0 - al
-    T_before = T_cur / one_m
     wgt = al * T_before
     gf = 0.0
     for ch in range(n_ch):
@@ -436,7 +523,7 @@ def _contribution_backward(
     d_alpha = T_before * gf + (ga_T - R) / one_m
     R += wgt * gf
     if raw > a_max:
-        return T_before, R  # clamped: alpha depends on neither o nor the footprint
+        return R  # clamped: alpha depends on neither o nor the footprint
     d_pow = al * d_alpha
     dxd = np.float64(xs[px] - means2d[g, 0])
     dyd = np.float64(ys[py] - means2d[g, 1])
@@ -447,22 +534,24 @@ def _contribution_backward(
     gbuf[w, g, 3] -= dxd * dyd * d_pow
     gbuf[w, g, 4] -= 0.5 * dyd * dyd * d_pow
     gbuf[w, g, 5] += np.float64(G) * d_alpha
-    return T_before, R
+    return R
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _backward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
-    xs, ys, consts, mode, geo, planes, intr, final_T, last, run_g, run_G, run_at, tile_kept,
-    grad_feat, grad_alpha, gbuf,
+    xs, ys, consts, mode, geo, planes, intr, final_T, last, run_g, run_G, run_T, run_at,
+    tile_kept, grad_feat, grad_alpha, gbuf,
 ):  # fmt: skip  # pragma: no cover - numba
     """Each pixel's contributors in the forward's order, back to front: the forward's
-    kept runs, or (a tile it had no room for) the runs rebuilt. Adds into
-    gbuf[w, gaussian]."""
+    kept runs, or (a tile it had no room for) the runs rebuilt, their transmittances
+    recomputed front to back as the forward did. Adds into gbuf[w, gaussian]."""
     height, width, _ = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
-    a_max = consts[3]
-    begin, end, cand_i, cand_key, cand_g, rx, ry = _scratch(tile_size, opac)
+    one, a_max = consts[1], consts[3]
+    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
+        tile_size, opac
+    )
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -470,30 +559,38 @@ def _backward_worker(
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
         kept = tile_kept[t] == 1
         if not kept:
-            cand_i, cand_key, cand_g = _tile_runs(
+            cand_i, cand_key, cand_g, reach_min = _tile_runs(
                 lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
                 consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+                stop_key, t_all, since, reach_min,
             )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
                 m_used = last[py, px]
                 if m_used == 0:
                     continue
-                T_cur = np.float64(final_T[py, px])
-                ga_T = np.float64(grad_alpha[py, px]) * T_cur
+                ga_T = np.float64(grad_alpha[py, px]) * np.float64(final_T[py, px])
                 R = 0.0
                 if kept:
                     at = run_at[py, px]
                     for j in range(at + m_used - 1, at - 1, -1):
-                        T_cur, R = _contribution_backward(
-                            run_g[j], run_G[j], T_cur, R, ga_T, px, py, w, means2d, conics,
-                            opac, feats, xs, ys, a_max, grad_feat, gbuf,
+                        R = _contribution_backward(
+                            run_g[j], run_G[j], np.float64(run_T[j]), R, ga_T, px, py, w,
+                            means2d, conics, opac, feats, xs, ys, a_max, grad_feat, gbuf,
                         )  # fmt: skip
                     continue
                 p = (py - y0) * tile_size + (px - x0)
-                for j in range(begin[p] + m_used - 1, begin[p] - 1, -1):
-                    T_cur, R = _contribution_backward(
-                        cand_i[j], cand_g[j], T_cur, R, ga_T, px, py, w, means2d,
+                s0 = begin[p]
+                T = one  # the sort keys are spent: their slots take the transmittances
+                for j in range(s0, s0 + m_used):
+                    cand_key[j] = T
+                    alpha = opac[cand_i[j]] * cand_g[j]
+                    if alpha > a_max:
+                        alpha = a_max
+                    T = T * (one - alpha)
+                for j in range(s0 + m_used - 1, s0 - 1, -1):
+                    R = _contribution_backward(
+                        cand_i[j], cand_g[j], cand_key[j], R, ga_T, px, py, w, means2d,
                         conics, opac, feats, xs, ys, a_max, grad_feat, gbuf,
                     )  # fmt: skip
 
@@ -506,7 +603,7 @@ RUN_STORE_BYTES = 64 * 2**20
 def _run_room(n_tiles: int, npdt: type) -> int:
     """Entries a tile may keep: an equal share of the budget (the buffers are allocated
     untouched, so only what the runs fill costs memory)."""
-    per_entry = 4 + np.dtype(npdt).itemsize
+    per_entry = 4 + 2 * np.dtype(npdt).itemsize
     return int(RUN_STORE_BYTES // max(1, n_tiles * per_entry))
 
 
@@ -543,6 +640,7 @@ class PlaneOrderComposite(torch.autograd.Function):
             room = _run_room(n_tiles, npdt) if keep_runs else 0
             runs = (
                 np.empty(n_tiles * room, np.int32),
+                np.empty(n_tiles * room, npdt),
                 np.empty(n_tiles * room, npdt),
                 np.empty((height, width), np.int64),
                 np.zeros(n_tiles, np.int8),
