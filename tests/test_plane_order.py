@@ -145,15 +145,19 @@ def _opaque_wall(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, .
     return means, quats, scales, op, feats
 
 
-def _transmittance_through_all(scene: tuple[torch.Tensor, ...], cam: Camera) -> torch.Tensor:
-    """(H, W) product of (1 - alpha) over every contributor of each pixel, in any order:
-    below T_MIN where the compositing stops before the pixel's last contributor."""
+def _contributors(
+    scene: tuple[torch.Tensor, ...], cam: Camera
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """(H, W) product of (1 - alpha) over every contributor of each pixel, in any order
+    (below T_MIN where the compositing stops before the pixel's last contributor), and
+    (H, W) how many contributors each pixel has."""
     means, quats, scales, op, _ = (t.detach().double() for t in scene)
     w, h = cam.intrinsics.width, cam.intrinsics.height
     proj = project_gaussians(means, covariances_from(quats, scales), cam)
     bins = bin_gaussians(proj.means2d, proj.depths, proj.radii, w, h, 16)
     v, u = torch.meshgrid(torch.arange(h) + 0.5, torch.arange(w) + 0.5, indexing="ij")
     T = torch.ones(h, w, dtype=torch.float64)
+    count = torch.zeros(h, w, dtype=torch.int64)
     for py in range(h):
         for px in range(w):
             ids = bins.tile((py // 16) * bins.tiles_x + px // 16).long()
@@ -164,7 +168,8 @@ def _transmittance_through_all(scene: tuple[torch.Tensor, ...], cam: Camera) -> 
             alpha = torch.clamp(op[ids] * torch.exp(power.clamp_max(0)), max=0.99)
             live = (power <= 0) & (alpha >= 1 / 255)
             T[py, px] = torch.prod(1 - alpha[live])
-    return T
+            count[py, px] = int(live.sum())
+    return T, count
 
 
 @pytest.mark.parametrize(
@@ -192,7 +197,7 @@ def test_saturated_pixels_stop_early_and_still_equal_the_reference(
         results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
     ref, cpu = results["reference"], results["cpu"]
     # the case it is written for: (nearly) every pixel saturates
-    assert float((_transmittance_through_all(scene, cam) < 1e-4).double().mean()) > 0.95
+    assert float((_contributors(scene, cam)[0] < 1e-4).double().mean()) > 0.95
     torch.testing.assert_close(cpu[0], ref[0], atol=tol, rtol=tol)
     torch.testing.assert_close(cpu[1], ref[1], atol=tol, rtol=tol)
     for name, g_cpu, g_ref in zip(("means", "quats", "scales", "opacities", "features"),
@@ -278,9 +283,15 @@ def test_gsplat_refuses_plane_order_with_a_reason() -> None:
         rasterize(means, quats, scales, op, feats, _camera(), backend="cuda", plane_order=True)
 
 
-def test_tiles_with_more_contributors_than_the_kernels_first_buffers_hold() -> None:
+@pytest.mark.parametrize("store", ["every tile", "no tile"])
+def test_tiles_with_more_contributors_than_the_kernels_first_buffers_hold(
+    store: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Over a hundred contributors at every pixel (the compiled kernels start with room
-    for 64 a pixel and grow it): still the reference's image and gradients."""
+    for 64 a pixel; a tile that outgrows it is counted and filled again, in the forward
+    and, where it kept nothing, in the backward): the reference's image and gradients."""
+    if store == "no tile":
+        monkeypatch.setattr(plane_order, "RUN_STORE_BYTES", 0)
     means, quats, scales, op, feats = _random_scene(600, torch.float64, seed=8)
     means[:, :2] *= 0.2  # near the optical axis
     quats[:, 1:] *= 0.3  # facing the camera, tilted at random

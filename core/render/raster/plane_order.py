@@ -82,6 +82,9 @@ REACH_SIGMAS = 3.0
 # this many insertions, and the tile's stop is looked for every this many list entries.
 _WALK_EVERY = 4
 _TILE_CHECK_EVERY = 32
+# A tile's runs first get 64 entries a pixel; a tile that needs more grows the arrays to
+# twice its largest run a pixel, up to this many entries (16 bytes each), or to its count.
+_MAX_GROWN_ROOM = 1 << 22
 
 
 @dataclass
@@ -266,7 +269,10 @@ def _fill_sorted(
     every ``_WALK_EVERY`` insertions, and first once the product of all its (1 - alpha),
     which does not depend on the order, falls below T_MIN. The tile stops early where
     every pixel has saturated in front of the nearest plane any later entry can
-    have (``reach_min``: suffix minima of z - h)."""
+    have (``reach_min``: suffix minima of z - h).
+
+    Returns False, leaving the runs unfinished, where a pixel's run outgrows its room
+    (``begin[p + 1] - begin[p]``): with rooms from :func:`_count_candidates` it cannot."""
     half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
     npix = tile_size * tile_size
     inf = np.inf
@@ -335,6 +341,8 @@ def _fill_sorted(
                 if key >= stop_key[p]:
                     continue
                 j = end[p]
+                if j >= begin[p + 1]:
+                    return False
                 s0 = begin[p]
                 while j > s0 and cand_key[j - 1] > key:  # entries arrive in tile order,
                     cand_key[j] = cand_key[j - 1]  # nearly sorted: a few shifts
@@ -353,6 +361,7 @@ def _fill_sorted(
                         stop_key[p] = _saturate(
                             begin[p], end, p, cand_i, cand_key, cand_g, opac, one, a_max, t_min
                         )
+    return True
 
 
 @njit(nogil=True, fastmath=False, cache=True)
@@ -381,22 +390,40 @@ def _tile_runs(
     mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all,
     since, reach_min,
 ):  # fmt: skip  # pragma: no cover - numba
-    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`), with
-    the candidate arrays grown first where the tile needs more room; returns them and
-    the suffix-minimum buffer (grown to the tile's list)."""
+    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`);
+    returns the candidate arrays and the suffix-minimum buffer (grown where needed).
+
+    Each pixel first gets an equal share of the candidate arrays; only a tile where a
+    run outgrows its share pays for the counting pass (exact rooms from the culling
+    ellipses) and a second fill, and the arrays grow to twice what it needed, so the
+    next tiles' shares fit (most tiles of a trained model: no counting pass at all)."""
     for px in range(x0, x1):
         rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
     for py in range(y0, y1):
         ry[py - y0] = (np.float64(ys[py]) - intr[3]) / intr[1]
+    if hi - lo > reach_min.shape[0]:
+        reach_min = np.empty(2 * (hi - lo), np.float64)
+    npix = tile_size * tile_size
+    share = cand_i.shape[0] // npix
+    for p in range(npix + 1):
+        begin[p] = p * share
+    if _fill_sorted(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+        since, reach_min,
+    ):  # fmt: skip
+        return cand_i, cand_key, cand_g, reach_min
     total = _count_candidates(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
     )
-    if total > cand_i.shape[0]:
-        cand_i = np.empty(2 * total, np.int32)
-        cand_key = np.empty(2 * total, np.float64)
-        cand_g = np.empty(2 * total, cand_g.dtype)
-    if hi - lo > reach_min.shape[0]:
-        reach_min = np.empty(2 * (hi - lo), np.float64)
+    most = 0
+    for p in range(npix):
+        most = max(most, begin[p + 1] - begin[p])
+    want = max(total, min(2 * most * npix, _MAX_GROWN_ROOM))
+    if want > cand_i.shape[0]:
+        cand_i = np.empty(want, np.int32)
+        cand_key = np.empty(want, np.float64)
+        cand_g = np.empty(want, cand_g.dtype)
     _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
         mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
