@@ -23,9 +23,10 @@ The order is piecewise constant, so it carries no gradient: the weights are the 
 
 The torch reference (:func:`rasterize_reference_plane`) sorts per pixel with a stable
 argsort; the numba kernels (pixel-major: each pixel gathers its contributors from the
-tile list, insertion-sorts them and composites; the forward keeps the composited runs
-for the backward within ``RUN_STORE_BYTES``, which halves the backward's time) are
-tested against it.
+tile list, insertion-sorts them, stops gathering what lies behind the point where its
+compositing saturates, and composites; the forward keeps the composited runs with
+their transmittances for the backward within ``RUN_STORE_BYTES``; the backward sums a
+tile's gradients per entry before adding them to the Gaussians') are tested against it.
 """
 
 from __future__ import annotations
@@ -253,8 +254,9 @@ def _fill_sorted(
     mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
     since, reach_min,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Each pixel p's contributors (alpha ≥ 1/255) as Gaussian indices
-    ``cand_i[begin[p]:end[p]]`` sorted by plane depth (stable: entries arrive in tile
+    """Each pixel p's contributors (alpha ≥ 1/255) as places in the tile list (entry
+    ``lo + k`` holds Gaussian ``gauss_ids[lo + k]``) ``cand_i[begin[p]:end[p]]``, sorted
+    by plane depth (stable: entries arrive in tile
     order and ties keep it), with their Gaussian factor exp(power) in ``cand_g``.
     Gaussian-major over the entries with the compiled backend's culling ellipses (a
     culling only: every visited pixel is tested with the reference formula). Insertion
@@ -350,7 +352,7 @@ def _fill_sorted(
                     cand_g[j] = cand_g[j - 1]
                     j -= 1
                 cand_key[j] = key
-                cand_i[j] = g
+                cand_i[j] = i - lo
                 cand_g[j] = G
                 end[p] += 1
                 since[p] += 1
@@ -359,21 +361,22 @@ def _fill_sorted(
                     since[p] = 0
                     if t_all[p] < t_min:
                         stop_key[p] = _saturate(
-                            begin[p], end, p, cand_i, cand_key, cand_g, opac, one, a_max, t_min
-                        )
+                            begin[p], end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one,
+                            a_max, t_min,
+                        )  # fmt: skip
     return True
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _saturate(
-    s0, end, p, cand_i, cand_key, cand_g, opac, one, a_max, t_min
+    s0, end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one, a_max, t_min
 ):  # fmt: skip  # pragma: no cover - numba
     """Walk pixel p's sorted run front to back as the compositing does; where it stops
     (the entry that takes the transmittance below T_MIN) drop what lies behind and
     return that entry's key, else +inf."""
     T = one
     for j in range(s0, end[p]):
-        alpha = opac[cand_i[j]] * cand_g[j]
+        alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
         if alpha > a_max:
             alpha = a_max
         test_T = T * (one - alpha)
@@ -471,8 +474,8 @@ def _forward_worker(
     front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
     contributors composited. Where ``run_g`` has room (``run_g.shape[0] // n_tiles``
     entries a tile) the composited runs are kept for the backward: pixel (y, x)'s
-    Gaussians, exp(power) and transmittance in front of each at ``run_at[y, x]`` on,
-    and ``tile_kept[t] = 1``."""
+    places in the tile list, exp(power) and transmittance in front of each at
+    ``run_at[y, x]`` on, and ``tile_kept[t] = 1``."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
@@ -500,7 +503,8 @@ def _forward_worker(
                 T = one
                 m_used = 0
                 for j in range(begin[p], end[p]):
-                    g = cand_i[j]
+                    k = cand_i[j]
+                    g = gauss_ids[lo + k]
                     G = cand_g[j]
                     alpha = opac[g] * G
                     if alpha > a_max:
@@ -513,7 +517,7 @@ def _forward_worker(
                         out_feat[py, px, ch] += feats[g, ch] * wgt
                     if kept:
                         if at < stop:
-                            run_g[at] = g
+                            run_g[at] = k
                             run_G[at] = G
                             run_T[at] = T
                             at += 1
@@ -528,11 +532,12 @@ def _forward_worker(
 
 @njit(nogil=True, fastmath=False, cache=True, inline="always")
 def _contribution_backward(
-    g, G, T_before, R, ga_T, px, py, w, means2d, conics, opac, feats, xs, ys, a_max,
-    grad_feat, gbuf,
+    k, g, G, T_before, R, ga_T, px, py, means2d, conics, opac, feats, xs, ys, a_max,
+    grad_feat, acc,
 ):  # fmt: skip  # pragma: no cover - numba
-    """One contributor's gradients, back to front (the compiled backend's formulas),
-    given the transmittance in front of it; returns the colour behind it. The
+    """One contributor's gradients (Gaussian g, place k in the tile list), back to front
+    (the compiled backend's formulas), added into ``acc[k]``, given the transmittance in
+    front of it; returns the colour behind it. The
     transmittance comes from the forward rather than from dividing back from the
     final one: that division chained each contributor to the next (a pixel-major
     walk has nothing else to overlap it with) and was most of the backward's time."""
@@ -546,7 +551,7 @@ def _contribution_backward(
     for ch in range(n_ch):
         gc = np.float64(grad_feat[py, px, ch])
         gf += gc * np.float64(feats[g, ch])
-        gbuf[w, g, 6 + ch] += wgt * gc
+        acc[k, 6 + ch] += wgt * gc
     d_alpha = T_before * gf + (ga_T - R) / one_m
     R += wgt * gf
     if raw > a_max:
@@ -555,12 +560,12 @@ def _contribution_backward(
     dxd = np.float64(xs[px] - means2d[g, 0])
     dyd = np.float64(ys[py] - means2d[g, 1])
     ad, bd, cd = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
-    gbuf[w, g, 0] += (ad * dxd + bd * dyd) * d_pow
-    gbuf[w, g, 1] += (cd * dyd + bd * dxd) * d_pow
-    gbuf[w, g, 2] -= 0.5 * dxd * dxd * d_pow
-    gbuf[w, g, 3] -= dxd * dyd * d_pow
-    gbuf[w, g, 4] -= 0.5 * dyd * dyd * d_pow
-    gbuf[w, g, 5] += np.float64(G) * d_alpha
+    acc[k, 0] += (ad * dxd + bd * dyd) * d_pow
+    acc[k, 1] += (cd * dyd + bd * dxd) * d_pow
+    acc[k, 2] -= 0.5 * dxd * dxd * d_pow
+    acc[k, 3] -= dxd * dyd * d_pow
+    acc[k, 4] -= 0.5 * dyd * dyd * d_pow
+    acc[k, 5] += np.float64(G) * d_alpha
     return R
 
 
@@ -572,18 +577,26 @@ def _backward_worker(
 ):  # fmt: skip  # pragma: no cover - numba
     """Each pixel's contributors in the forward's order, back to front: the forward's
     kept runs, or (a tile it had no room for) the runs rebuilt, their transmittances
-    recomputed front to back as the forward did. Adds into gbuf[w, gaussian]."""
+    recomputed front to back as the forward did. A tile's gradients are summed per
+    entry of its list first (``acc``: a few thousand rows, in cache, where scattering
+    each contribution into gbuf[w, gaussian] missed it half the backward's time), then
+    added into gbuf once an entry."""
     height, width, _ = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max = consts[1], consts[3]
     begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
         tile_size, opac
     )
+    n_q = 6 + feats.shape[1]
+    acc = np.empty((1024, n_q), np.float64)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        if hi - lo > acc.shape[0]:
+            acc = np.empty((2 * (hi - lo), n_q), np.float64)
+        acc[: hi - lo] = 0.0
         kept = tile_kept[t] == 1
         if not kept:
             cand_i, cand_key, cand_g, reach_min = _tile_runs(
@@ -601,9 +614,10 @@ def _backward_worker(
                 if kept:
                     at = run_at[py, px]
                     for j in range(at + m_used - 1, at - 1, -1):
+                        k = run_g[j]
                         R = _contribution_backward(
-                            run_g[j], run_G[j], np.float64(run_T[j]), R, ga_T, px, py, w,
-                            means2d, conics, opac, feats, xs, ys, a_max, grad_feat, gbuf,
+                            k, gauss_ids[lo + k], run_G[j], np.float64(run_T[j]), R, ga_T, px,
+                            py, means2d, conics, opac, feats, xs, ys, a_max, grad_feat, acc,
                         )  # fmt: skip
                     continue
                 p = (py - y0) * tile_size + (px - x0)
@@ -611,15 +625,20 @@ def _backward_worker(
                 T = one  # the sort keys are spent: their slots take the transmittances
                 for j in range(s0, s0 + m_used):
                     cand_key[j] = T
-                    alpha = opac[cand_i[j]] * cand_g[j]
+                    alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
                     if alpha > a_max:
                         alpha = a_max
                     T = T * (one - alpha)
                 for j in range(s0 + m_used - 1, s0 - 1, -1):
+                    k = cand_i[j]
                     R = _contribution_backward(
-                        cand_i[j], cand_g[j], cand_key[j], R, ga_T, px, py, w, means2d,
-                        conics, opac, feats, xs, ys, a_max, grad_feat, gbuf,
+                        k, gauss_ids[lo + k], cand_g[j], cand_key[j], R, ga_T, px, py, means2d,
+                        conics, opac, feats, xs, ys, a_max, grad_feat, acc,
                     )  # fmt: skip
+        for k in range(hi - lo):
+            g = gauss_ids[lo + k]
+            for q in range(n_q):
+                gbuf[w, g, q] += acc[k, q]
 
 
 # Memory the forward may keep its composited runs in for the backward (which otherwise
