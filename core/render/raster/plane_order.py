@@ -642,8 +642,9 @@ def _backward_worker(
 
 
 # Memory the forward may keep its composited runs in for the backward (which otherwise
-# rebuilds them: about half its time); a tile whose runs do not fit is rebuilt.
-RUN_STORE_BYTES = 64 * 2**20
+# rebuilds them: about half its time); a tile whose runs do not fit is rebuilt. 12 bytes
+# an entry in float32: 8M entries, 32 a pixel at 512².
+RUN_STORE_BYTES = 96 * 2**20
 
 
 def _run_room(n_tiles: int, npdt: type) -> int:
