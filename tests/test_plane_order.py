@@ -83,7 +83,7 @@ def _kept_tiles(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     def spy(*args):  # the last argument is tile_kept
         forward(*args)
         if args[0] == 0:
-            kept.append(args[-1])
+            kept.append(args[-1].copy())  # the backward clears it when done
 
     monkeypatch.setattr(plane_order, "_forward_worker", spy)
     return kept
@@ -205,6 +205,27 @@ def test_saturated_pixels_stop_early_and_still_equal_the_reference(
         scale = float(g_ref.abs().max())
         assert scale > 0, name
         torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+
+
+def test_a_second_backward_rebuilds_the_runs_the_first_gave_back() -> None:
+    """The kept runs' buffers go back to a pool after the backward (the next forward
+    overwrites them); a second backward of the same graph rebuilds the runs instead."""
+    scene = _random_scene(300, torch.float64, seed=12)
+    other = _random_scene(300, torch.float64, seed=13)
+    cam = _camera(32, 32)
+    leaves = [t.clone().requires_grad_(True) for t in scene]
+    r = rasterize(*leaves, cam, backend="cpu", plane_order=True)
+    loss = r.features.sum() + r.alpha.sum()
+    loss.backward(retain_graph=True)
+    first = [t.grad.clone() for t in leaves]
+    for t in leaves:
+        t.grad = None
+    o = rasterize(*[t.clone().requires_grad_(True) for t in other], cam, backend="cpu",
+                  plane_order=True)  # fmt: skip
+    (o.features.sum() + o.alpha.sum()).backward()  # takes and fills the pooled buffers
+    loss.backward()
+    for a, b in zip(first, (t.grad for t in leaves), strict=True):
+        torch.testing.assert_close(b, a, rtol=1e-12, atol=1e-12)
 
 
 def test_plane_order_matches_a_pixel_by_pixel_sort_written_out() -> None:

@@ -87,4 +87,19 @@ def test_scratch_buffers_are_zeroed_reused_and_never_shared():
         assert np.shares_memory(c, base) and not c.any()
     with kernel_pool.scratch_zeros((4,), np.float32) as d:
         assert d.dtype == np.float32 and not d.any()
-    assert len(kernel_pool._SCRATCH) <= kernel_pool._SCRATCH_KEEP
+    assert len(kernel_pool._SCRATCH.idle) <= kernel_pool._SCRATCH.keep
+
+
+def test_a_buffer_pool_hands_out_the_smallest_fit_and_keeps_the_largest():
+    import numpy as np
+
+    pool = kernel_pool.BufferPool(keep=2)
+    a, b = pool.take(100, np.int32), pool.take(50, np.int32)
+    assert a.size >= 100 and b.size >= 50 and not np.shares_memory(a, b)
+    for buf in (a, b, pool.take(10, np.int32)):
+        pool.give(buf)
+    assert [x.size for x in pool.idle] == [100, 50]  # the smallest went
+    assert pool.take(40, np.int32) is b  # the smallest that holds 40
+    assert pool.take(40, np.float64).dtype == np.float64  # never another dtype's
+    assert pool.take(80, np.int32) is a
+    assert pool.idle == []

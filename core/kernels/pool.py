@@ -17,8 +17,8 @@ import numpy as np
 import torch
 
 __all__ = [
-    "kernel_threads", "run_ranges", "run_workers", "scratch_zeros", "set_kernel_threads",
-    "store_dtype", "zeros_touched",
+    "BufferPool", "kernel_threads", "run_ranges", "run_workers", "scratch_zeros",
+    "set_kernel_threads", "store_dtype", "zeros_touched",
 ]  # fmt: skip
 
 _POOL: ThreadPoolExecutor | None = None
@@ -108,9 +108,39 @@ def zeros_touched(shape: tuple[int, ...], dtype: type) -> np.ndarray:
     return out
 
 
-_SCRATCH: list[np.ndarray] = []  # idle work buffers (flat), reused by scratch_zeros
-_SCRATCH_LOCK = threading.Lock()
-_SCRATCH_KEEP = 2  # idle buffers kept: a backward pass needs one, at most two at once
+class BufferPool:
+    """Idle flat work buffers kept for reuse, so a buffer's pages stay mapped.
+
+    A fresh large array pays a page fault on every page it touches (about 2 ms per
+    MiB on the development VM); a reused one only what the caller does with it.
+    ``take`` hands out the smallest idle buffer of the dtype that holds ``size``
+    elements (or a new one); ``give`` returns it, and only the ``keep`` largest
+    idle buffers stay. Concurrent takers get different buffers.
+    """
+
+    def __init__(self, keep: int) -> None:
+        self.keep = keep
+        self.idle: list[np.ndarray] = []
+        self._lock = threading.Lock()
+
+    def take(self, size: int, dtype: type | np.dtype) -> np.ndarray:
+        """A flat buffer of at least ``size`` elements (contents undefined)."""
+        dt = np.dtype(dtype)
+        with self._lock:
+            fits = [i for i, b in enumerate(self.idle) if b.dtype == dt and b.size >= size]
+            if fits:
+                return self.idle.pop(min(fits, key=lambda i: self.idle[i].size))
+        return np.empty(size, dt)
+
+    def give(self, buf: np.ndarray) -> None:
+        with self._lock:
+            self.idle.append(buf)
+            self.idle.sort(key=lambda b: b.size, reverse=True)
+            del self.idle[self.keep :]  # keep the largest
+
+
+# The per-thread gradient sums of a backward pass: one in use at a time, at most two.
+_SCRATCH = BufferPool(keep=2)
 
 
 @contextmanager
@@ -119,23 +149,14 @@ def scratch_zeros(shape: tuple[int, ...], dtype: type = np.float64) -> Iterator[
 
     For the per-thread gradient sums of a backward pass, (threads, N, 6 + C) float64,
     72 MiB at 300k Gaussians: a fresh array every step pays the page faults of
-    mapping it again (about 2 ms per MiB on the development VM), a pooled one only
-    a memset. Nothing may keep a view of it after the ``with`` block; concurrent
-    callers get different buffers.
+    mapping it again, a pooled one only a memset. Nothing may keep a view of it after
+    the ``with`` block; concurrent callers get different buffers.
     """
     size = math.prod(shape)
-    dt = np.dtype(dtype)
-    with _SCRATCH_LOCK:
-        fits = [i for i, b in enumerate(_SCRATCH) if b.dtype == dt and b.size >= size]
-        buf = _SCRATCH.pop(min(fits, key=lambda i: _SCRATCH[i].size)) if fits else None
-    if buf is None:
-        buf = np.empty(size, dt)
+    buf = _SCRATCH.take(size, dtype)
     view = buf[:size].reshape(shape)
     view.fill(0)
     try:
         yield view
     finally:
-        with _SCRATCH_LOCK:
-            _SCRATCH.append(buf)
-            _SCRATCH.sort(key=lambda b: b.size, reverse=True)
-            del _SCRATCH[_SCRATCH_KEEP:]  # keep the largest
+        _SCRATCH.give(buf)

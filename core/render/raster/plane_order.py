@@ -39,6 +39,7 @@ import torch
 from torch import Tensor
 
 from core.kernels.pool import (
+    BufferPool,
     kernel_threads,
     run_ranges,
     run_workers,
@@ -499,7 +500,8 @@ def _forward_worker(
         for py in range(y0, y1):
             for px in range(x0, x1):
                 p = (py - y0) * tile_size + (px - x0)
-                run_at[py, px] = at
+                if room > 0:
+                    run_at[py, px] = at
                 T = one
                 m_used = 0
                 for j in range(begin[p], end[p]):
@@ -654,6 +656,49 @@ def _run_room(n_tiles: int, npdt: type) -> int:
     return int(RUN_STORE_BYTES // max(1, n_tiles * per_entry))
 
 
+# The kept runs' buffers, reused from step to step so their pages stay mapped (a fresh
+# store paid about 2 ms of page faults per MiB it filled): a training step has two
+# forwards (the view and its neighbour) waiting for their backwards, four arrays each.
+_RUNS = BufferPool(keep=8)
+
+
+def _take_runs(entries: int, pixels: int, npdt: type) -> tuple[np.ndarray, ...]:
+    """Pooled flat buffers for a forward's kept runs: places, exp(power), transmittances
+    and each pixel's start."""
+    return (
+        _RUNS.take(entries, np.int32),
+        _RUNS.take(entries, npdt),
+        _RUNS.take(entries, npdt),
+        _RUNS.take(pixels, np.int64),
+    )
+
+
+def _kept_views(pooled: tuple[np.ndarray, ...], entries: int, height: int, width: int):
+    """The kernels' views of the pooled buffers."""
+    k, G, T, at = pooled
+    return k[:entries], G[:entries], T[:entries], at[: height * width].reshape(height, width)
+
+
+def _no_runs(npdt: type) -> tuple[np.ndarray, ...]:
+    """Nothing kept (no gradient wanted): empty arrays of the kernels' types."""
+    return (
+        np.empty(0, np.int32),
+        np.empty(0, npdt),
+        np.empty(0, npdt),
+        np.empty((0, 0), np.int64),
+    )
+
+
+def _give_runs(ctx) -> None:
+    """Return a forward's run buffers to the pool once its backward has read them; a
+    second backward (retain_graph) then rebuilds every tile instead of reading them."""
+    if ctx.pooled:
+        ctx.state[-1][:] = 0  # tile_kept: nothing kept any more
+        for buf in ctx.pooled:
+            _RUNS.give(buf)
+        ctx.pooled = ()
+
+
 class PlaneOrderComposite(torch.autograd.Function):
     """Differentiable plane-order compositing on the CPU (numba, pixel-major)."""
 
@@ -678,6 +723,7 @@ class PlaneOrderComposite(torch.autograd.Function):
         out_last = zeros_touched((height, width), np.int32)
         setup = None
         extra: tuple = ()
+        ctx.pooled = ()
         if bins.gauss_ids.numel() > 0 and n_ch > 0:
             setup = _Setup(means2d, conics, opacities, features, bins, width, height, dtype)
             intr = np.array([order.fx, order.fy, order.cx, order.cy], np.float64)
@@ -685,15 +731,14 @@ class PlaneOrderComposite(torch.autograd.Function):
             extra = (planes, intr)
             n_tiles = int(bins.offsets.numel()) - 1
             room = _run_room(n_tiles, npdt) if keep_runs else 0
+            pooled = _take_runs(n_tiles * room, height * width, npdt) if room > 0 else ()
             runs = (
-                np.empty(n_tiles * room, np.int32),
-                np.empty(n_tiles * room, npdt),
-                np.empty(n_tiles * room, npdt),
-                np.empty((height, width), np.int64),
+                *(_kept_views(pooled, n_tiles * room, height, width) if pooled else _no_runs(npdt)),
                 np.zeros(n_tiles, np.int8),
             )
             args = (*setup.args(), *extra, out_feat, out_T, out_last, *runs)
             run_workers(_forward_worker, kernel_threads(), args)
+            ctx.pooled = pooled
         ctx.save_for_backward(means2d, conics, opacities, features)
         ctx.setup, ctx.extra = setup, extra
         ctx.meta = (dtype, width, height, n_ch)
@@ -726,6 +771,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                 )
                 args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf)
                 run_workers(_backward_worker, n_workers, args)
+                _give_runs(ctx)
             widths = (_G_A - _G_MX, _G_O - _G_A, _G_F - _G_O, n_ch)
             parts = [
                 np.empty((n, w), store_dtype(d)) for w, d in zip(widths, in_dtypes, strict=True)
