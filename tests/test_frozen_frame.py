@@ -108,3 +108,28 @@ def test_mesh_fusion_frames_are_the_same_from_a_frozen_copy(tmp_path: Path) -> N
         torch.testing.assert_close(a.depth[both], b.depth[both], rtol=1e-5, atol=1e-6)
         torch.testing.assert_close(a.color[both], b.color[both], rtol=1e-5, atol=1e-5)
         torch.testing.assert_close(a.weight[both], b.weight[both], rtol=1e-5, atol=1e-5)
+
+
+def test_a_frozen_frame_in_plane_order_takes_no_eigenvalues(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Plane order needs each splat's reach (3 × its largest scale): a frozen model
+    keeps it from its scales, as the live model computes it, instead of taking the
+    eigenvalues of every covariance each frame (~0.1 s at 134k splats); the frames
+    match the live model's."""
+    one_sided_sphere(tmp_path)
+    live = TrainedModel.open(tmp_path / "checkpoint.pt", device="cpu")
+    frozen = live.frozen()
+    assert live.phase.splat_order == "auto"  # plane order on the cpu backend
+    cam = Camera.look_at([2.2, 0.0, 0.6], [0.0, 0.0, 0.0], [0.0, 0.0, 1.0],
+                         Intrinsics(60.0, 60.0, 32.0, 24.0, 64, 48))  # fmt: skip
+    expected = live.render(cam, ("base", "normal", "alpha"))
+
+    def refuse(*_args, **_kwargs):
+        raise AssertionError("a frozen frame decomposed its covariances")
+
+    monkeypatch.setattr(torch.linalg, "eigvalsh", refuse)
+    monkeypatch.setattr(torch.linalg, "eigh", refuse)
+    got = frozen.render(cam, ("base", "normal", "alpha"))
+    for ch in ("base", "normal", "alpha"):
+        torch.testing.assert_close(got.image(ch), expected.image(ch), rtol=1e-5, atol=1e-5)

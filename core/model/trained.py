@@ -29,6 +29,7 @@ from core.render.envmap import EnvMap
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import near_plane, render_gbuffer, render_gbuffer_tensors
 from core.render.raster import resolve_backend
+from core.render.raster.plane_order import plane_reach
 from core.render.roughness import roughness as splat_roughness
 from core.render.shading import deferred_shade
 from core.render.view_opacity import view_opacity_scale, visible_index
@@ -200,6 +201,9 @@ class TrainedModel:
             "opacities": g.opacities.detach(),
             "normals": g.normals().detach(),
             "w_r": g.w_r.detach(),
+            # plane order's reach, from the scales as the live model's: not from each
+            # frame's covariances (their eigenvalues: ~0.1 s a frame at 134k splats)
+            "plane_reach": plane_reach(g.scales),
         }
         rough = splat_roughness(g)
         if rough is not None:
@@ -259,8 +263,8 @@ class TrainedModel:
                     return t if t is None or keep is None else t.index_select(0, keep)
 
                 colors = pick(st.get("colors"))
-                keys = ("means", "normals", "w_r", "covariances")
-                means, normals, w_r, covs = (pick(st[k]) for k in keys)
+                keys = ("means", "normals", "w_r", "covariances", "plane_reach")
+                means, normals, w_r, covs, reach = (pick(st[k]) for k in keys)
                 opacities = pick(opacities)
                 rough = pick(st.get("roughness")) if with_rough else None
             if colors is None:
@@ -271,7 +275,7 @@ class TrainedModel:
                     means, None, None, opacities, colors, normals, w_r, camera,
                     covariances=covs, backend=self.backend, antialiased=phase.antialiased,
                     lowpass=phase.lowpass, roughness=rough, near=near, depth=with_depth,
-                    splat_order=phase.splat_order,
+                    splat_order=phase.splat_order, plane_reach=reach,
                 )  # fmt: skip
         else:
             cull = view_opacity_scale(

@@ -266,6 +266,7 @@ def render_gbuffer_tensors(
     held_plane: bool = False,
     depth: bool = True,
     splat_order: str = "centre",
+    plane_reach: Tensor | None = None,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -292,7 +293,8 @@ def render_gbuffer_tensors(
 
     ``depth=False`` composites neither D nor centre z (``plane_dist`` and ``z_blend``
     are None): a frame read for its colour, normal, w_r or roughness only (the viewer's
-    shaded frame) splats 7 channels instead of 9.
+    shaded frame) splats 7 channels instead of 9. ``plane_reach`` (N,): a frozen model's
+    kept ``plane_reach`` of its scales, for plane order (else taken from ``covariances``).
     """
     geometry_only = colors is None
     held = held_plane and not geometry_only
@@ -322,6 +324,7 @@ def render_gbuffer_tensors(
         order_slab=order_slab(scales, covariances) if splat_order == "slab" else None,
         plane_order="auto" if splat_order == "auto" else splat_order == "plane",
         plane_normals=normals_world,
+        plane_reach=plane_reach,
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

@@ -168,6 +168,7 @@ def rasterize(
     order_slab: float | None = None,
     plane_order: bool | Literal["auto"] = False,
     plane_normals: Tensor | None = None,
+    plane_reach: Tensor | None = None,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
@@ -181,7 +182,8 @@ def rasterize(
     ``plane_order``: each pixel composites its splats in the order their planes meet
     its ray (``core.render.raster.plane_order``; cpu and reference backends only);
     ``"auto"``: where the backend can, else centre order (gsplat). ``plane_normals``
-    (N, 3, world): the planes' normals where the caller has them (the G-buffer's).
+    (N, 3, world): the planes' normals where the caller has them (the G-buffer's);
+    ``plane_reach`` (N,): their ``plane_reach`` where the caller kept it (a frozen model).
     """
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
@@ -227,7 +229,7 @@ def rasterize(
         )  # fmt: skip
     fn = BACKENDS[name][1]
     if plane_order:
-        keys = plane_keys(means, quats, scales, camera, covariances, plane_normals)
+        keys = plane_keys(means, quats, scales, camera, covariances, plane_normals, plane_reach)
         plane_fn = rasterize_cpu_plane if name == "cpu" else rasterize_reference_plane
         fn = partial(plane_fn, order=keys)
     if antialiased and proj.compensation is not None:

@@ -75,7 +75,9 @@ except ImportError:  # pragma: no cover - numba is a declared dependency
         return lambda fn: fn
 
 
-__all__ = ["PlaneKeys", "plane_keys", "rasterize_cpu_plane", "rasterize_reference_plane"]
+__all__ = [
+    "PlaneKeys", "plane_keys", "plane_reach", "rasterize_cpu_plane", "rasterize_reference_plane",
+]  # fmt: skip
 
 # A splat's plane is searched for within this many of its largest standard deviations
 # of its centre along the ray (its alpha is below 1/255 beyond about 3.3 σ).
@@ -114,6 +116,12 @@ class PlaneKeys:
         return torch.minimum(torch.maximum(t, z - h), z + h)
 
 
+def plane_reach(scales: Tensor) -> Tensor:
+    """(N,) how far along the ray from its centre a splat's plane is searched for:
+    REACH_SIGMAS of its largest scale (no gradient)."""
+    return REACH_SIGMAS * scales.detach().to(torch.float64).amax(-1)
+
+
 def plane_keys(
     means: Tensor,
     quats: Tensor | None,
@@ -121,17 +129,22 @@ def plane_keys(
     camera: Camera,
     covariances: Tensor | None = None,
     normals: Tensor | None = None,
+    reach: Tensor | None = None,
 ) -> PlaneKeys:
     """Each splat's camera-space plane, centre depth and reach (no gradient).
 
     ``normals`` (N, 3, world, any sign): the planes' normals where the caller has them
     (the G-buffer's Eq. 6 normals), so that a model rendered from its rotations and the
     same model rendered from frozen covariances sort their splats alike; otherwise the
-    axis of the smallest scale, or of the covariance's smallest eigenvalue."""
+    axis of the smallest scale, or of the covariance's smallest eigenvalue. ``reach``
+    (N,): :func:`plane_reach` where the caller kept it (a frozen model: otherwise every
+    frame would take the eigenvalues of every covariance, ~0.1 s at 134k splats)."""
     with torch.no_grad():
-        if quats is not None and scales is not None:
+        if reach is not None and normals is not None:
+            reach = reach.detach().to(torch.float64)
+        elif quats is not None and scales is not None:
             s = scales.detach().to(torch.float64)
-            reach = REACH_SIGMAS * s.amax(-1)
+            reach = plane_reach(scales)
             if normals is None:
                 R = quat_to_rotmat(normalize_quats(quats.detach().to(torch.float64)))
                 k = s.argmin(-1)[:, None, None].expand(-1, 3, 1)
