@@ -60,19 +60,61 @@ def test_a_pixel_composites_the_plane_its_ray_meets_first_first(backend: str) ->
     torch.testing.assert_close(plane.alpha, centre.alpha)  # coverage does not depend on order
 
 
-def _random_scene(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:
+def _flat_splats(
+    n: int,
+    dtype: torch.dtype,
+    seed: int,
+    *,
+    box: tuple[float, float, float],
+    scale: tuple[float, float],
+    opacity: tuple[float, float],
+    channels: int,
+) -> tuple[torch.Tensor, ...]:
+    """n flat splats (third scale 1e-3, as trained ones are), centres uniform in a
+    ``box`` centred 3 in front of the camera, random rotations, the other scales and
+    the opacities uniform in [lo, lo + span), random features."""
     g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * torch.tensor(
-        [1.6, 1.4, 1.0], dtype=dtype
-    )
+    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * torch.tensor(box, dtype=dtype)
     means[:, 2] += 3.0
     quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.1 + 0.01
-    scales[:, 2] = 1e-3  # flat splats, as trained ones are
-    op = torch.rand(n, generator=g, dtype=dtype) * 0.95
-    op[:5] = 1.0  # clamped alphas (0.99) pass no gradient to opacity or footprint
-    feats = torch.rand(n, 4, generator=g, dtype=dtype)
+    scales = torch.rand(n, 3, generator=g, dtype=dtype) * scale[1] + scale[0]
+    scales[:, 2] = 1e-3
+    op = torch.rand(n, generator=g, dtype=dtype) * opacity[1] + opacity[0]
+    feats = torch.rand(n, channels, generator=g, dtype=dtype)
     return means, quats, scales, op, feats
+
+
+def _random_scene(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:
+    scene = _flat_splats(n, dtype, seed, box=(1.6, 1.4, 1.0), scale=(0.01, 0.1),
+                         opacity=(0.0, 0.95), channels=4)  # fmt: skip
+    scene[3][:5] = 1.0  # clamped alphas (0.99) pass no gradient to opacity or footprint
+    return scene
+
+
+def _assert_compiled_equals_reference(
+    scene: tuple[torch.Tensor, ...], cam: Camera, tol: float, seed: int
+) -> torch.Tensor:
+    """The compiled plane order against the reference under a random weighting of every
+    output pixel: features, alpha and every input's gradient; returns the features."""
+    dtype, w, h = scene[0].dtype, cam.intrinsics.width, cam.intrinsics.height
+    g = torch.Generator().manual_seed(seed)
+    w_feat = torch.rand(h, w, scene[4].shape[1], generator=g, dtype=dtype)
+    w_alpha = torch.rand(h, w, generator=g, dtype=dtype)
+    results = {}
+    for backend in ("reference", "cpu"):
+        leaves = [t.clone().requires_grad_(True) for t in scene]
+        r = rasterize(*leaves, cam, backend=backend, plane_order=True)
+        ((r.features * w_feat).sum() + (r.alpha * w_alpha).sum()).backward()
+        results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
+    ref, cpu = results["reference"], results["cpu"]
+    torch.testing.assert_close(cpu[0], ref[0], atol=tol, rtol=tol)
+    torch.testing.assert_close(cpu[1], ref[1], atol=tol, rtol=tol)
+    for name, g_cpu, g_ref in zip(("means", "quats", "scales", "opacities", "features"),
+                                  cpu[2], ref[2], strict=True):  # fmt: skip
+        scale = float(g_ref.abs().max())
+        assert scale > 0, name
+        torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+    return cpu[0]
 
 
 def _kept_tiles(monkeypatch: pytest.MonkeyPatch) -> list[int]:
@@ -103,46 +145,21 @@ def test_compiled_plane_order_equals_the_reference_forward_and_backward(
     kept = _kept_tiles(monkeypatch)
     scene = _random_scene(400, dtype, seed=4)
     cam = _camera(48, 40)
-    g = torch.Generator().manual_seed(9)
-    w_feat = torch.rand(40, 48, 4, generator=g, dtype=dtype)
-    w_alpha = torch.rand(40, 48, generator=g, dtype=dtype)
-    results = {}
-    for backend in ("reference", "cpu"):
-        leaves = [t.clone().requires_grad_(True) for t in scene]
-        r = rasterize(*leaves, cam, backend=backend, plane_order=True)
-        ((r.features * w_feat).sum() + (r.alpha * w_alpha).sum()).backward()
-        results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
-    ref, cpu = results["reference"], results["cpu"]
-    torch.testing.assert_close(cpu[0], ref[0], atol=tol, rtol=tol)
-    torch.testing.assert_close(cpu[1], ref[1], atol=tol, rtol=tol)
-    for name, g_cpu, g_ref in zip(("means", "quats", "scales", "opacities", "features"),
-                                  cpu[2], ref[2], strict=True):  # fmt: skip
-        scale = float(g_ref.abs().max())
-        assert scale > 0, name
-        torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+    cpu = _assert_compiled_equals_reference(scene, cam, tol, seed=9)
     n_kept = int(kept[0].sum())  # of the 3 × 3 tiles of 16², each with contributors
     assert {"every tile": n_kept == 9, "no tile": n_kept == 0, "some tiles": 0 < n_kept < 9}[
         store
     ], n_kept
     # the scene is one where the order matters: it changes the image
     centre = rasterize(*scene, cam, backend="cpu")
-    assert float((centre.features - cpu[0]).abs().max()) > 0.05
+    assert float((centre.features - cpu).abs().max()) > 0.05
 
 
 def _opaque_wall(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:
     """Layers of nearly opaque flat splats filling the whole view: every pixel saturates
     within its first few layers, so most of each tile list lies behind the stop."""
-    g = torch.Generator().manual_seed(seed)
-    means = (torch.rand(n, 3, generator=g, dtype=dtype) - 0.5) * torch.tensor(
-        [3.6, 3.2, 1.5], dtype=dtype
-    )
-    means[:, 2] += 3.0
-    quats = torch.randn(n, 4, generator=g, dtype=dtype)
-    scales = torch.rand(n, 3, generator=g, dtype=dtype) * 0.15 + 0.08
-    scales[:, 2] = 1e-3
-    op = 0.75 + 0.25 * torch.rand(n, generator=g, dtype=dtype)
-    feats = torch.rand(n, 3, generator=g, dtype=dtype)
-    return means, quats, scales, op, feats
+    return _flat_splats(n, dtype, seed, box=(3.6, 3.2, 1.5), scale=(0.08, 0.15),
+                        opacity=(0.75, 0.25), channels=3)  # fmt: skip
 
 
 def _contributors(
@@ -186,25 +203,9 @@ def test_saturated_pixels_stop_early_and_still_equal_the_reference(
         monkeypatch.setattr(plane_order, "RUN_STORE_BYTES", 0)
     scene = _opaque_wall(2000, dtype, seed=11)
     cam = _camera(48, 40)
-    g = torch.Generator().manual_seed(3)
-    w_feat = torch.rand(40, 48, 3, generator=g, dtype=dtype)
-    w_alpha = torch.rand(40, 48, generator=g, dtype=dtype)
-    results = {}
-    for backend in ("reference", "cpu"):
-        leaves = [t.clone().requires_grad_(True) for t in scene]
-        r = rasterize(*leaves, cam, backend=backend, plane_order=True)
-        ((r.features * w_feat).sum() + (r.alpha * w_alpha).sum()).backward()
-        results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
-    ref, cpu = results["reference"], results["cpu"]
     # the case it is written for: (nearly) every pixel saturates
     assert float((_contributors(scene, cam)[0] < 1e-4).double().mean()) > 0.95
-    torch.testing.assert_close(cpu[0], ref[0], atol=tol, rtol=tol)
-    torch.testing.assert_close(cpu[1], ref[1], atol=tol, rtol=tol)
-    for name, g_cpu, g_ref in zip(("means", "quats", "scales", "opacities", "features"),
-                                  cpu[2], ref[2], strict=True):  # fmt: skip
-        scale = float(g_ref.abs().max())
-        assert scale > 0, name
-        torch.testing.assert_close(g_cpu, g_ref, atol=tol * scale * 10, rtol=0, msg=name)
+    _assert_compiled_equals_reference(scene, cam, tol, seed=3)
 
 
 def test_a_second_backward_rebuilds_the_runs_the_first_gave_back() -> None:
