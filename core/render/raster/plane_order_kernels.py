@@ -1,0 +1,456 @@
+"""The numba kernels of per-pixel plane order (``core.render.raster.plane_order``):
+pixel-major per 16-px tile, each pixel's contributors gathered from the tile list,
+insertion-sorted by where its ray meets each splat's plane, composited front to back;
+the backward walks the forward's kept runs (or rebuilt ones) back to front.
+
+Kept apart from the autograd function, the plane keys and the torch reference they are
+tested against (``tests/test_plane_order.py``), so each file has one job.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from core.render.raster.cpu import _GEO_HX, _GEO_HY, _row_span, _span
+
+try:
+    from numba import njit
+except ImportError:  # pragma: no cover - numba is a declared dependency
+
+    def njit(*_args, **_kwargs):  # type: ignore[no-redef]
+        return lambda fn: fn
+
+
+# Early termination (:func:`_fill_sorted`): a saturated pixel's run is walked again after
+# this many insertions, and the tile's stop is looked for every this many list entries.
+_WALK_EVERY = 4
+_TILE_CHECK_EVERY = 32
+# A tile's runs first get 64 entries a pixel; a tile that needs more grows the arrays to
+# twice its largest run a pixel, up to this many entries (16 bytes each), or to its count.
+_MAX_GROWN_ROOM = 1 << 22
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _count_candidates(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
+):  # fmt: skip  # pragma: no cover - numba
+    """``begin[p]``: where pixel p's run starts, room for every entry whose culling
+    ellipse covers the pixel (a superset of its contributors: no exp() here); returns
+    the room needed in all."""
+    npix = tile_size * tile_size
+    begin[:] = 0
+    for i in range(lo, hi):
+        g = gauss_ids[i]
+        m = mode[g]
+        if m == 0:
+            continue
+        geo_g = geo[g]
+        mxd = np.float64(means2d[g, 0])
+        myd = np.float64(means2d[g, 1])
+        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
+        if c0 >= c1:
+            continue
+        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
+        for py in range(r0, r1):
+            q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
+            for px in range(q0, q1):
+                begin[(py - y0) * tile_size + (px - x0) + 1] += 1
+    for p in range(npix):
+        begin[p + 1] += begin[p]
+    return begin[npix]
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _fill_sorted(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+    since, reach_min,
+):  # fmt: skip  # pragma: no cover - numba
+    """Each pixel p's contributors (alpha ≥ 1/255) as places in the tile list (entry
+    ``lo + k`` holds Gaussian ``gauss_ids[lo + k]``) ``cand_i[begin[p]:end[p]]``, sorted
+    by plane depth (stable: entries arrive in tile
+    order and ties keep it), with their Gaussian factor exp(power) in ``cand_g``.
+    Gaussian-major over the entries with the compiled backend's culling ellipses (a
+    culling only: every visited pixel is tested with the reference formula). Insertion
+    sort: the centre order is close to the plane order, so a heap (tried) was 2.6×
+    slower on the bench scene.
+
+    Early termination, exact: once a pixel's sorted run saturates (the compositing
+    would stop at an entry with key ``stop_key[p]``), an entry whose key is not below
+    that lands behind it and is never composited, so it is not inserted (nor its
+    exp() taken where even its nearest possible key, z - h, is not below); the entries
+    behind the stop are dropped. The run is walked again (:func:`_saturate`) after
+    every ``_WALK_EVERY`` insertions, and first once the product of all its (1 - alpha),
+    which does not depend on the order, falls below T_MIN. The tile stops early where
+    every pixel has saturated in front of the nearest plane any later entry can
+    have (``reach_min``: suffix minima of z - h).
+
+    Returns False, leaving the runs unfinished, where a pixel's run outgrows its room
+    (``begin[p + 1] - begin[p]``): with rooms from :func:`_count_candidates` it cannot."""
+    half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
+    npix = tile_size * tile_size
+    inf = np.inf
+    for p in range(npix):
+        end[p] = begin[p]
+        stop_key[p] = inf
+        t_all[p] = 1.0
+        since[p] = 0
+    n = hi - lo
+    lowest = inf
+    for k in range(n - 1, -1, -1):
+        g = gauss_ids[lo + k]
+        zlo = planes[g, 4] - planes[g, 5]
+        if zlo < lowest:
+            lowest = zlo
+        reach_min[k] = lowest
+    tile_stop = inf
+    for i in range(lo, hi):
+        if (i - lo) % _TILE_CHECK_EVERY == 0 and i > lo:
+            tile_stop = -inf
+            for py in range(y0, y1):
+                for px in range(x0, x1):
+                    k_p = stop_key[(py - y0) * tile_size + (px - x0)]
+                    if k_p > tile_stop:
+                        tile_stop = k_p
+        if reach_min[i - lo] >= tile_stop:
+            break
+        g = gauss_ids[i]
+        m = mode[g]
+        if m == 0:
+            continue
+        geo_g = geo[g]
+        mxd = np.float64(means2d[g, 0])
+        myd = np.float64(means2d[g, 1])
+        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
+        if c0 >= c1:
+            continue
+        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
+        mx, my = means2d[g, 0], means2d[g, 1]
+        a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
+        nx, ny, nz, d = planes[g, 0], planes[g, 1], planes[g, 2], planes[g, 3]
+        z, h = planes[g, 4], planes[g, 5]
+        zlo = z - h
+        for py in range(r0, r1):
+            q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
+            dy = ys[py] - my
+            ny_ry = ny * ry[py - y0] + nz
+            for px in range(q0, q1):
+                p = (py - y0) * tile_size + (px - x0)
+                if zlo >= stop_key[p]:
+                    continue
+                dx = xs[px] - mx
+                power = -half * (a * dx * dx + c * dy * dy) - b * dx * dy
+                if not (power <= 0):
+                    continue
+                G = math.exp(power)
+                alpha = o * G
+                if alpha > a_max:
+                    alpha = a_max
+                if not (alpha >= a_min):
+                    continue
+                key = d / (nx * rx[px - x0] + ny_ry)
+                if not math.isfinite(key):
+                    key = z
+                key = min(max(key, zlo), z + h)
+                if key >= stop_key[p]:
+                    continue
+                j = end[p]
+                if j >= begin[p + 1]:
+                    return False
+                s0 = begin[p]
+                while j > s0 and cand_key[j - 1] > key:  # entries arrive in tile order,
+                    cand_key[j] = cand_key[j - 1]  # nearly sorted: a few shifts
+                    cand_i[j] = cand_i[j - 1]
+                    cand_g[j] = cand_g[j - 1]
+                    j -= 1
+                cand_key[j] = key
+                cand_i[j] = i - lo
+                cand_g[j] = G
+                end[p] += 1
+                since[p] += 1
+                t_all[p] *= 1.0 - np.float64(alpha)
+                if since[p] >= _WALK_EVERY or (t_all[p] < t_min and stop_key[p] == inf):
+                    since[p] = 0
+                    if t_all[p] < t_min:
+                        stop_key[p] = _saturate(
+                            begin[p], end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one,
+                            a_max, t_min,
+                        )  # fmt: skip
+    return True
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _saturate(
+    s0, end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one, a_max, t_min
+):  # fmt: skip  # pragma: no cover - numba
+    """Walk pixel p's sorted run front to back as the compositing does; where it stops
+    (the entry that takes the transmittance below T_MIN) drop what lies behind and
+    return that entry's key, else +inf."""
+    T = one
+    for j in range(s0, end[p]):
+        alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
+        if alpha > a_max:
+            alpha = a_max
+        test_T = T * (one - alpha)
+        if test_T < t_min:
+            end[p] = j + 1
+            return cand_key[j]
+        T = test_T
+    return np.inf
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _tile_runs(
+    lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all,
+    since, reach_min,
+):  # fmt: skip  # pragma: no cover - numba
+    """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`);
+    returns the candidate arrays and the suffix-minimum buffer (grown where needed).
+
+    Each pixel first gets an equal share of the candidate arrays; only a tile where a
+    run outgrows its share pays for the counting pass (exact rooms from the culling
+    ellipses) and a second fill, and the arrays grow to twice what it needed, so the
+    next tiles' shares fit (most tiles of a trained model: no counting pass at all)."""
+    for px in range(x0, x1):
+        rx[px - x0] = (np.float64(xs[px]) - intr[2]) / intr[0]
+    for py in range(y0, y1):
+        ry[py - y0] = (np.float64(ys[py]) - intr[3]) / intr[1]
+    if hi - lo > reach_min.shape[0]:
+        reach_min = np.empty(2 * (hi - lo), np.float64)
+    npix = tile_size * tile_size
+    share = cand_i.shape[0] // npix
+    for p in range(npix + 1):
+        begin[p] = p * share
+    if _fill_sorted(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+        since, reach_min,
+    ):  # fmt: skip
+        return cand_i, cand_key, cand_g, reach_min
+    total = _count_candidates(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
+    )
+    most = 0
+    for p in range(npix):
+        most = max(most, begin[p + 1] - begin[p])
+    want = max(total, min(2 * most * npix, _MAX_GROWN_ROOM))
+    if want > cand_i.shape[0]:
+        cand_i = np.empty(want, np.int32)
+        cand_key = np.empty(want, np.float64)
+        cand_g = np.empty(want, cand_g.dtype)
+    _fill_sorted(
+        lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
+        since, reach_min,
+    )  # fmt: skip
+    return cand_i, cand_key, cand_g, reach_min
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _scratch(tile_size, opac):  # pragma: no cover - numba
+    """A worker's buffers: run bounds, room for 64 contributors a pixel (grown per tile
+    where needed), the tile's ray slopes, the early termination's per-pixel state and
+    the tile list's suffix minima (grown where needed)."""
+    npix = tile_size * tile_size
+    return (
+        np.zeros(npix + 1, np.int64),
+        np.zeros(npix, np.int64),
+        np.empty(64 * npix, np.int32),
+        np.empty(64 * npix, np.float64),
+        np.empty(64 * npix, opac.dtype),
+        np.empty(tile_size, np.float64),
+        np.empty(tile_size, np.float64),
+        np.empty(npix, np.float64),
+        np.empty(npix, np.float64),
+        np.empty(npix, np.int32),
+        np.empty(1024, np.float64),
+    )
+
+
+@njit(nogil=True, fastmath=False, cache=True, inline="always")
+def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
+    """Pixel bounds x0, y0, x1, y1 (exclusive) of tile t."""
+    x0 = (t % tiles_x) * tile_size
+    y0 = (t // tiles_x) * tile_size
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _forward_worker(
+    w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
+    xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
+    run_g, run_G, run_T, run_at, tile_kept,
+):  # fmt: skip  # pragma: no cover - numba
+    """Tiles w, w + n_workers, ...: each pixel's contributors in plane order, composited
+    front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
+    contributors composited. Where ``run_g`` has room (``run_g.shape[0] // n_tiles``
+    entries a tile) the composited runs are kept for the backward: pixel (y, x)'s
+    places in the tile list, exp(power) and transmittance in front of each at
+    ``run_at[y, x]`` on, and ``tile_kept[t] = 1``."""
+    height, width, n_ch = out_feat.shape
+    n_tiles = offsets.shape[0] - 1
+    one, a_max, t_min = consts[1], consts[3], consts[4]
+    room = run_g.shape[0] // max(n_tiles, 1)
+    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
+        tile_size, opac
+    )
+    for t in range(w, n_tiles, n_workers):
+        lo, hi = offsets[t], offsets[t + 1]
+        if hi == lo:
+            continue
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        cand_i, cand_key, cand_g, reach_min = _tile_runs(
+            lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
+            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+            stop_key, t_all, since, reach_min,
+        )  # fmt: skip
+        kept = room > 0
+        at = t * room
+        stop = at + room
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                p = (py - y0) * tile_size + (px - x0)
+                if room > 0:
+                    run_at[py, px] = at
+                T = one
+                m_used = 0
+                for j in range(begin[p], end[p]):
+                    k = cand_i[j]
+                    g = gauss_ids[lo + k]
+                    G = cand_g[j]
+                    alpha = opac[g] * G
+                    if alpha > a_max:
+                        alpha = a_max
+                    test_T = T * (one - alpha)
+                    if test_T < t_min:
+                        break
+                    wgt = alpha * T
+                    for ch in range(n_ch):
+                        out_feat[py, px, ch] += feats[g, ch] * wgt
+                    if kept:
+                        if at < stop:
+                            run_g[at] = k
+                            run_G[at] = G
+                            run_T[at] = T
+                            at += 1
+                        else:
+                            kept = False
+                    T = test_T
+                    m_used += 1
+                out_T[py, px] = T
+                out_last[py, px] = m_used
+        tile_kept[t] = 1 if kept else 0
+
+
+@njit(nogil=True, fastmath=False, cache=True, inline="always")
+def _contribution_backward(
+    k, g, G, T_before, R, ga_T, px, py, means2d, conics, opac, feats, xs, ys, a_max,
+    grad_feat, acc,
+):  # fmt: skip  # pragma: no cover - numba
+    """One contributor's gradients (Gaussian g, place k in the tile list), back to front
+    (the compiled backend's formulas), added into ``acc[k]``, given the transmittance in
+    front of it; returns the colour behind it. The
+    transmittance comes from the forward rather than from dividing back from the
+    final one: that division chained each contributor to the next (a pixel-major
+    walk has nothing else to overlap it with) and was most of the backward's time."""
+    n_ch = feats.shape[1]
+    raw = opac[g] * G
+    alpha = a_max if raw > a_max else raw
+    al = np.float64(alpha)
+    one_m = 1.0 - al
+    wgt = al * T_before
+    gf = 0.0
+    for ch in range(n_ch):
+        gc = np.float64(grad_feat[py, px, ch])
+        gf += gc * np.float64(feats[g, ch])
+        acc[k, 6 + ch] += wgt * gc
+    d_alpha = T_before * gf + (ga_T - R) / one_m
+    R += wgt * gf
+    if raw > a_max:
+        return R  # clamped: alpha depends on neither o nor the footprint
+    d_pow = al * d_alpha
+    dxd = np.float64(xs[px] - means2d[g, 0])
+    dyd = np.float64(ys[py] - means2d[g, 1])
+    ad, bd, cd = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+    acc[k, 0] += (ad * dxd + bd * dyd) * d_pow
+    acc[k, 1] += (cd * dyd + bd * dxd) * d_pow
+    acc[k, 2] -= 0.5 * dxd * dxd * d_pow
+    acc[k, 3] -= dxd * dyd * d_pow
+    acc[k, 4] -= 0.5 * dyd * dyd * d_pow
+    acc[k, 5] += np.float64(G) * d_alpha
+    return R
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _backward_worker(
+    w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
+    xs, ys, consts, mode, geo, planes, intr, final_T, last, run_g, run_G, run_T, run_at,
+    tile_kept, grad_feat, grad_alpha, gbuf,
+):  # fmt: skip  # pragma: no cover - numba
+    """Each pixel's contributors in the forward's order, back to front: the forward's
+    kept runs, or (a tile it had no room for) the runs rebuilt, their transmittances
+    recomputed front to back as the forward did. A tile's gradients are summed per
+    entry of its list first (``acc``: a few thousand rows, in cache, where scattering
+    each contribution into gbuf[w, gaussian] missed it half the backward's time), then
+    added into gbuf once an entry."""
+    height, width, _ = grad_feat.shape
+    n_tiles = offsets.shape[0] - 1
+    one, a_max = consts[1], consts[3]
+    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
+        tile_size, opac
+    )
+    n_q = 6 + feats.shape[1]
+    acc = np.empty((1024, n_q), np.float64)
+    for t in range(w, n_tiles, n_workers):
+        lo, hi = offsets[t], offsets[t + 1]
+        if hi == lo:
+            continue
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        if hi - lo > acc.shape[0]:
+            acc = np.empty((2 * (hi - lo), n_q), np.float64)
+        acc[: hi - lo] = 0.0
+        kept = tile_kept[t] == 1
+        if not kept:
+            cand_i, cand_key, cand_g, reach_min = _tile_runs(
+                lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
+                consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
+                stop_key, t_all, since, reach_min,
+            )  # fmt: skip
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                m_used = last[py, px]
+                if m_used == 0:
+                    continue
+                ga_T = np.float64(grad_alpha[py, px]) * np.float64(final_T[py, px])
+                R = 0.0
+                if kept:
+                    at = run_at[py, px]
+                    for j in range(at + m_used - 1, at - 1, -1):
+                        k = run_g[j]
+                        R = _contribution_backward(
+                            k, gauss_ids[lo + k], run_G[j], np.float64(run_T[j]), R, ga_T, px,
+                            py, means2d, conics, opac, feats, xs, ys, a_max, grad_feat, acc,
+                        )  # fmt: skip
+                    continue
+                p = (py - y0) * tile_size + (px - x0)
+                s0 = begin[p]
+                T = one  # the sort keys are spent: their slots take the transmittances
+                for j in range(s0, s0 + m_used):
+                    cand_key[j] = T
+                    alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
+                    if alpha > a_max:
+                        alpha = a_max
+                    T = T * (one - alpha)
+                for j in range(s0 + m_used - 1, s0 - 1, -1):
+                    k = cand_i[j]
+                    R = _contribution_backward(
+                        k, gauss_ids[lo + k], cand_g[j], cand_key[j], R, ga_T, px, py, means2d,
+                        conics, opac, feats, xs, ys, a_max, grad_feat, acc,
+                    )  # fmt: skip
+        for k in range(hi - lo):
+            g = gauss_ids[lo + k]
+            for q in range(n_q):
+                gbuf[w, g, q] += acc[k, q]
