@@ -204,6 +204,24 @@ def _row_span(mode, geo_g, mx, dy, lo, hi):  # pragma: no cover
     return _span(1, mx - geo_g[_GEO_SLOPE] * dy, math.sqrt(disc), lo, hi)
 
 
+@njit(fastmath=False, cache=True, inline="always")
+def _entry_rows(g, mode, geo, means2d, x0, x1, y0, y1):  # pragma: no cover
+    """A tile entry's culling: Gaussian g's mode, its culling geometry, its centre in
+    float64 and the rows [r0, r1) of the tile box [x0, x1) × [y0, y1) its culling box
+    covers, empty (r0 == r1) where it is culled or covers none of the box's columns."""
+    m = mode[g]
+    geo_g = geo[g]
+    mxd = np.float64(means2d[g, 0])
+    myd = np.float64(means2d[g, 1])
+    if m == 0:
+        return m, geo_g, mxd, myd, y0, y0
+    c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
+    if c0 >= c1:
+        return m, geo_g, mxd, myd, y0, y0
+    r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
+    return m, geo_g, mxd, myd, r0, r1
+
+
 @njit(nogil=True, fastmath=False, cache=True)
 def _forward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
@@ -243,16 +261,9 @@ def _forward_worker(
         last_loc[:] = 0
         for i in range(lo, hi):
             g = gauss_ids[i]
-            m = mode[g]
-            if m == 0:
+            m, geo_g, mxd, myd, r0, r1 = _entry_rows(g, mode, geo, means2d, x0, x1, y0, y1)
+            if r0 >= r1:
                 continue
-            geo_g = geo[g]
-            mxd = np.float64(means2d[g, 0])
-            myd = np.float64(means2d[g, 1])
-            c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
-            if c0 >= c1:
-                continue
-            r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
             for ch in range(n_ch):
@@ -340,16 +351,9 @@ def _backward_worker(
             n_last = max(n_last, row_last[py - y0])
         for i in range(lo + n_last - 1, lo - 1, -1):
             g = gauss_ids[i]
-            m = mode[g]
-            if m == 0:
+            m, geo_g, mxd, myd, r0, r1 = _entry_rows(g, mode, geo, means2d, x0, x1, y0, y1)
+            if r0 >= r1:
                 continue
-            geo_g = geo[g]
-            mxd = np.float64(means2d[g, 0])
-            myd = np.float64(means2d[g, 1])
-            c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
-            if c0 >= c1:
-                continue
-            r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
             mx, my = means2d[g, 0], means2d[g, 1]
             a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
             ad, bd, cd = np.float64(a), np.float64(b), np.float64(c)

@@ -13,7 +13,7 @@ import math
 
 import numpy as np
 
-from core.render.raster.cpu import _GEO_HX, _GEO_HY, _row_span, _span
+from core.render.raster.cpu import _entry_rows, _row_span
 
 try:
     from numba import njit
@@ -46,16 +46,9 @@ def _count_candidates(
     begin[:] = 0
     for i in range(lo, hi):
         g = gauss_ids[i]
-        m = mode[g]
-        if m == 0:
+        m, geo_g, mxd, myd, r0, r1 = _entry_rows(g, mode, geo, means2d, x0, x1, y0, y1)
+        if r0 >= r1:
             continue
-        geo_g = geo[g]
-        mxd = np.float64(means2d[g, 0])
-        myd = np.float64(means2d[g, 1])
-        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
-        if c0 >= c1:
-            continue
-        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
         for py in range(r0, r1):
             q0, q1 = _row_span(m, geo_g, mxd, py + 0.5 - myd, x0, x1)
             for px in range(q0, q1):
@@ -120,16 +113,9 @@ def _fill_sorted(
         if reach_min[i - lo] >= tile_stop:
             break
         g = gauss_ids[i]
-        m = mode[g]
-        if m == 0:
+        m, geo_g, mxd, myd, r0, r1 = _entry_rows(g, mode, geo, means2d, x0, x1, y0, y1)
+        if r0 >= r1:
             continue
-        geo_g = geo[g]
-        mxd = np.float64(means2d[g, 0])
-        myd = np.float64(means2d[g, 1])
-        c0, c1 = _span(m, mxd, geo_g[_GEO_HX], x0, x1)
-        if c0 >= c1:
-            continue
-        r0, r1 = _span(m, myd, geo_g[_GEO_HY], y0, y1)
         mx, my = means2d[g, 0], means2d[g, 1]
         a, b, c, o = conics[g, 0], conics[g, 1], conics[g, 2], opac[g]
         nx, ny, nz, d = planes[g, 0], planes[g, 1], planes[g, 2], planes[g, 3]
