@@ -15,8 +15,9 @@ All cases run in one process on the same Gaussians, side by side:
   ``splat_order`` (plane order on CPU, centre order on CUDA; ``--compare-order`` times
   another order beside it): G-buffer, deferred shading, RGB,
   scale, single-view and multi-view losses (a second, depth-only G-buffer for the
-  neighbour), backward and Adam; and the same step without L_multi, as the scene plan
-  runs a capture whose every view is masked.
+  neighbour, at the pixels the multi-view loss reads), backward and Adam; and the
+  same step without L_multi, as the scene plan runs a capture whose every view is
+  masked.
 
 Targets (issue 5, on an H100, where ``auto`` is centre order): full step ≤ 1.3 × plain
 step; deferred ≥ 200 FPS. On CPU the full step composites in plane order, which gathers
@@ -49,7 +50,14 @@ from core.render.raster import rasterize, resolve_backend
 from core.render.roughness import add_roughness_state
 from core.render.shading import deferred_shade
 from core.scene.cameras import Camera
-from core.training.losses import multi_view_loss, rgb_loss, scale_loss, single_view_loss
+from core.training.losses import (
+    multi_view_footprint,
+    multi_view_loss,
+    multi_view_pixels,
+    rgb_loss,
+    scale_loss,
+    single_view_loss,
+)
 from core.training.optim import make_optimizers
 
 MASKED_STEP = "full step, masked capture (plan: no L_multi)"
@@ -116,6 +124,7 @@ def run(args: argparse.Namespace) -> dict:
     target = torch.rand(args.size, args.size, 3, generator=torch.Generator().manual_seed(1))
     target = target.to(device)
     white = torch.ones(3, device=device)
+    gen = torch.Generator().manual_seed(2)
 
     def adam() -> None:
         for o in opts.values():
@@ -152,13 +161,16 @@ def run(args: argparse.Namespace) -> dict:
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
-        if multi_view:  # the neighbour is read for its depth only, as training does
+        if multi_view:  # the neighbour is read for its depth, where the loss reads it,
+            # as training does
+            pixels = multi_view_pixels(valid, cfg.loss.multiview_pixels, gen)
+            footprint = multi_view_footprint(depth.detach(), pixels, cam, cam_nb)
             gb_n, _ = render_gbuffer(
                 gs, cam_nb, sh_degree=0, backend=backend, antialiased=aa, geometry_only=True,
-                splat_order=order,
+                splat_order=order, pixels=footprint,
             )  # fmt: skip
             d_n, v_n = geometry_depth(gb_n, True)
-            mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, n_pixels=4096)
+            mv, _ = multi_view_loss(depth, valid, cam, d_n, v_n, cam_nb, pixels=pixels)
             loss = loss + 0.1 * mv
         loss.backward()
         adam()

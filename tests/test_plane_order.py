@@ -92,18 +92,28 @@ def _random_scene(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, 
 
 
 def _assert_compiled_equals_reference(
-    scene: tuple[torch.Tensor, ...], cam: Camera, tol: float, seed: int
+    scene: tuple[torch.Tensor, ...],
+    cam: Camera,
+    tol: float,
+    seed: int,
+    pixels: torch.Tensor | None = None,
+    read: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> torch.Tensor:
     """The compiled plane order against the reference under a random weighting of every
-    output pixel: features, alpha and every input's gradient; returns the features."""
+    output pixel (``read``: the pixels whose features and whose alpha are read; the
+    others' upstream gradients are zero):
+    features, alpha and every input's gradient; returns the features. ``pixels``: the
+    mask both are rendered with."""
     dtype, w, h = scene[0].dtype, cam.intrinsics.width, cam.intrinsics.height
     g = torch.Generator().manual_seed(seed)
     w_feat = torch.rand(h, w, scene[4].shape[1], generator=g, dtype=dtype)
     w_alpha = torch.rand(h, w, generator=g, dtype=dtype)
+    if read is not None:
+        w_feat, w_alpha = w_feat * read[0][..., None], w_alpha * read[1]
     results = {}
     for backend in ("reference", "cpu"):
         leaves = [t.clone().requires_grad_(True) for t in scene]
-        r = rasterize(*leaves, cam, backend=backend, plane_order=True)
+        r = rasterize(*leaves, cam, backend=backend, plane_order=True, pixels=pixels)
         ((r.features * w_feat).sum() + (r.alpha * w_alpha).sum()).backward()
         results[backend] = (r.features.detach(), r.alpha.detach(), [t.grad for t in leaves])
     ref, cpu = results["reference"], results["cpu"]
@@ -122,10 +132,10 @@ def _kept_tiles(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     kept: list[int] = []
     forward = plane_order._forward_worker
 
-    def spy(*args):  # the last argument is tile_kept
+    def spy(*args):  # the last two arguments are tile_kept and the pixel flags
         forward(*args)
         if args[0] == 0:
-            kept.append(args[-1].copy())  # the backward clears it when done
+            kept.append(args[-2].copy())  # the backward clears it when done
 
     monkeypatch.setattr(plane_order, "_forward_worker", spy)
     return kept
@@ -153,6 +163,33 @@ def test_compiled_plane_order_equals_the_reference_forward_and_backward(
     # the scene is one where the order matters: it changes the image
     centre = rasterize(*scene, cam, backend="cpu")
     assert float((centre.features - cpu).abs().max()) > 0.05
+
+
+@pytest.mark.parametrize("store", ["every tile", "no tile"])
+def test_pixels_read_and_pixels_asked_for(store: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A loss that reads a few pixels (the multi-view term) leaves the others' upstream
+    gradient at zero, and a caller may ask for a few pixels only: the backward walks (or
+    rebuilds) the read ones, the forward composites the asked-for ones, and both still
+    give the reference's values and gradients; pixels not asked for come back empty."""
+    budget = {"every tile": plane_order.RUN_STORE_BYTES, "no tile": 0}
+    monkeypatch.setattr(plane_order, "RUN_STORE_BYTES", budget[store])
+    scene = _random_scene(400, torch.float64, seed=5)
+    cam = _camera(48, 40)
+    g = torch.Generator().manual_seed(3)
+    pixels = torch.rand(40, 48, generator=g) < 0.3
+    pixels[:16, :16] = False  # one tile asks for nothing
+    pixels[16:32, 32:] = True  # one asks for everything
+    # some pixels' features are read, some pixels' alpha, some both
+    read = tuple(pixels & (torch.rand(40, 48, generator=g) < 0.5) for _ in range(2))
+    # a read subset of every pixel, then of the asked-for ones only
+    _assert_compiled_equals_reference(scene, cam, 1e-12, seed=2, read=read)
+    feats = _assert_compiled_equals_reference(scene, cam, 1e-12, seed=2, pixels=pixels, read=read)
+    full = rasterize(*scene, cam, backend="cpu", plane_order=True)
+    assert torch.equal(feats[pixels], full.features[pixels])  # exactly what a full frame has
+    assert float(full.features[~pixels].abs().max()) > 0.05  # the others had something
+    assert float(feats[~pixels].abs().max()) == 0.0
+    with pytest.raises(ValueError, match=r"pixels must be \(H, W\) = \(40, 48\)"):
+        rasterize(*scene, cam, backend="cpu", plane_order=True, pixels=pixels.T)
 
 
 def _opaque_wall(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:

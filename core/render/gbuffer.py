@@ -267,6 +267,7 @@ def render_gbuffer_tensors(
     depth: bool = True,
     splat_order: str = "centre",
     plane_reach: Tensor | None = None,
+    pixels: Tensor | None = None,
 ) -> tuple[GBuffer, RasterResult]:
     """One splatting pass with 9 channels: base (3), normal (3), D, w_r, centre z, and
     roughness as a tenth when ``roughness`` (N,) is given.
@@ -295,6 +296,8 @@ def render_gbuffer_tensors(
     are None): a frame read for its colour, normal, w_r or roughness only (the viewer's
     shaded frame) splats 7 channels instead of 9. ``plane_reach`` (N,): a frozen model's
     kept ``plane_reach`` of its scales, for plane order (else taken from ``covariances``).
+    ``pixels`` (H, W) bool: the pixels the caller reads; the others come back empty
+    (``rasterize``; plane order does not composite them).
     """
     geometry_only = colors is None
     held = held_plane and not geometry_only
@@ -325,6 +328,7 @@ def render_gbuffer_tensors(
         plane_order="auto" if splat_order == "auto" else splat_order == "plane",
         plane_normals=normals_world,
         plane_reach=plane_reach,
+        pixels=pixels,
     )
     ch = split_channels(res.features, lay, depth=depth)
     if geometry_only:

@@ -113,6 +113,39 @@ def single_view_loss(
     return (weight[ok] * per_pixel).mean()
 
 
+def multi_view_pixels(
+    valid_ref: Tensor, n_pixels: int | None, generator: torch.Generator | None = None
+) -> Tensor:
+    """The reference pixels (flat indices, in pixel order) :func:`multi_view_loss`
+    reads: every valid one, or ``n_pixels`` of them drawn at random."""
+    flat_valid = valid_ref.reshape(-1)
+    idx = flat_valid.nonzero()[:, 0]
+    if n_pixels is not None and idx.numel() > n_pixels:
+        # One random key per pixel of the image, valid or not, so the generator
+        # advances by the same amount whatever the valid count: a single pixel's
+        # validity flipping by rounding must not reshuffle every later random draw.
+        keys = torch.rand(flat_valid.numel(), generator=generator, device="cpu")
+        # the n_pixels smallest keys, in pixel order (topk: 14× a full argsort at 128²)
+        pick = torch.topk(keys[idx.cpu()], n_pixels, largest=False, sorted=False).indices
+        idx = idx[pick.sort().values.to(idx.device)]
+    return idx
+
+
+def multi_view_footprint(
+    depth_ref: Tensor, idx: Tensor, cam_ref: Camera, cam_nb: Camera
+) -> Tensor | None:
+    """(H, W) bool: the neighbour pixels :func:`multi_view_loss` will read for the
+    reference pixels ``idx`` (:func:`multi_view_pixels`), so the neighbour need only be
+    rendered there (``render_gbuffer(pixels=...)``): at 128² with 4096 pixels drawn
+    about two thirds of a view, at 800² 3%. None where the loss runs as torch ops
+    (not CPU float tensors), whose arithmetic the footprint does not repeat."""
+    if not cpu_float(depth_ref):
+        return None
+    from core.training.multi_view_compiled import neighbour_footprint
+
+    return neighbour_footprint(depth_ref, idx, cam_ref, cam_nb)
+
+
 def multi_view_loss(
     depth_ref: Tensor,
     valid_ref: Tensor,
@@ -126,6 +159,7 @@ def multi_view_loss(
     generator: torch.Generator | None = None,
     error_weighting: bool = False,
     compiled: bool | None = None,
+    pixels: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, float]]:
     """Eq. 12–14: forward–backward reprojection error between two depth maps.
 
@@ -137,19 +171,13 @@ def multi_view_loss(
     is weighted by exp(−error) (detached), as PGSR does, so pixels that are probably
     mismatched pull less. Returns (loss, stats). ``compiled``: the round trip and its
     backward as one numba pass (core.training.multi_view_compiled; None: for CPU
-    tensors), False: the torch ops below, the reference.
+    tensors), False: the torch ops below, the reference. ``pixels``: the reference
+    pixels drawn beforehand (:func:`multi_view_pixels`; then ``n_pixels`` and
+    ``generator`` are not used), as a step that renders the neighbour at their
+    :func:`multi_view_footprint` only does.
     """
-    dtype, device = depth_ref.dtype, depth_ref.device
-    flat_valid = valid_ref.reshape(-1)
-    idx = flat_valid.nonzero()[:, 0]
-    if n_pixels is not None and idx.numel() > n_pixels:
-        # One random key per pixel of the image, valid or not, so the generator
-        # advances by the same amount whatever the valid count: a single pixel's
-        # validity flipping by rounding must not reshuffle every later random draw.
-        keys = torch.rand(flat_valid.numel(), generator=generator, device="cpu")
-        # the n_pixels smallest keys, in pixel order (topk: 14× a full argsort at 128²)
-        pick = torch.topk(keys[idx.cpu()], n_pixels, largest=False, sorted=False).indices
-        idx = idx[pick.sort().values.to(device)]
+    dtype = depth_ref.dtype
+    idx = multi_view_pixels(valid_ref, n_pixels, generator) if pixels is None else pixels
     zero = depth_ref.sum() * 0.0
     if idx.numel() == 0:
         return zero, {"pixels": 0.0, "kept": 0.0}

@@ -70,43 +70,81 @@ def _in_front(x, y, z):  # pragma: no cover - numba
 
 
 @njit(nogil=True, cache=True, inline="always")
-def _taps(img, u, v):  # pragma: no cover - numba
-    """``bilinear_lookup`` at pixel coordinates (u, v): (value, inside, x0, y0, x1, y1,
-    fx, fy); the far taps (x1, y1) stay in the image for a 1-px wide or high one."""
-    h, w = img.shape
+def _tap_box(h, w, u, v):  # pragma: no cover - numba
+    """Where ``bilinear_lookup`` reads an (h, w) image at pixel coordinates (u, v):
+    (finite, inside, x0, y0, x1, y1, fx, fy); the far taps (x1, y1) stay in the image
+    for a 1-px wide or high one."""
     x, y = u - 0.5, v - 0.5
     if not (math.isfinite(x) and math.isfinite(y)):
-        return 0.0, False, 0, 0, 0, 0, 0.0, 0.0
+        return False, False, 0, 0, 0, 0, 0.0, 0.0
     inside = x >= 0.0 and y >= 0.0 and x <= w - 1 and y <= h - 1
     x0 = int(min(max(math.floor(x), 0.0), max(w - 2, 0)))
     y0 = int(min(max(math.floor(y), 0.0), max(h - 2, 0)))
     x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
     fx = min(max(x - x0, 0.0), 1.0)
     fy = min(max(y - y0, 0.0), 1.0)
+    return True, inside, x0, y0, x1, y1, fx, fy
+
+
+@njit(nogil=True, cache=True, inline="always")
+def _taps(img, u, v):  # pragma: no cover - numba
+    """``bilinear_lookup`` at pixel coordinates (u, v): (value, inside, x0, y0, x1, y1,
+    fx, fy)."""
+    finite, inside, x0, y0, x1, y1, fx, fy = _tap_box(img.shape[0], img.shape[1], u, v)
+    if not finite:
+        return 0.0, False, 0, 0, 0, 0, 0.0, 0.0
     v00, v01 = np.float64(img[y0, x0]), np.float64(img[y0, x1])
     v10, v11 = np.float64(img[y1, x0]), np.float64(img[y1, x1])
     val = (v00 * (1 - fx) + v01 * fx) * (1 - fy) + (v10 * (1 - fx) + v11 * fx) * fy
     return val, inside, x0, y0, x1, y1, fx, fy
 
 
+@njit(nogil=True, cache=True, inline="always")
+def _into_neighbour(p, d_ref, Rr, tr, kr, Rn, tn, kn):  # pragma: no cover - numba
+    """Reference pixel p (flat index) lifted with its depth and projected into the
+    neighbour (Eq. 12–13): (in front, u_r, v_r, u_n, v_n, z_n)."""
+    w = d_ref.shape[1]
+    fxr, fyr, cxr, cyr = kr[0], kr[1], kr[2], kr[3]
+    fxn, fyn, cxn, cyn = kn[0], kn[1], kn[2], kn[3]
+    ur, vr = (p % w) + 0.5, (p // w) + 0.5
+    dr = np.float64(d_ref[p // w, p % w])
+    X, Y, Z = _to_world(Rr, tr, (ur - cxr) / fxr * dr, (vr - cyr) / fyr * dr, dr)
+    cx, cy, cz = _to_cam(Rn, tn, X, Y, Z)
+    if not _in_front(cx, cy, cz):
+        return False, ur, vr, 0.0, 0.0, cz
+    return True, ur, vr, fxn * cx / cz + cxn, fyn * cy / cz + cyn, cz
+
+
+@njit(nogil=True, cache=True)
+def _footprint(idx, d_ref, Rr, tr, kr, Rn, tn, kn, out):  # pragma: no cover - numba
+    """Mark in ``out`` (the neighbour's H, W) every pixel :func:`_forward` reads for the
+    pixels ``idx``: the bilinear taps of each projection that lands inside and in front
+    (elsewhere the round trip is dropped whatever the neighbour holds)."""
+    h, w = out.shape
+    for m in range(idx.shape[0]):
+        front, _, _, un, vn, cz = _into_neighbour(idx[m], d_ref, Rr, tr, kr, Rn, tn, kn)
+        if not (front and cz > 0.0):
+            continue
+        finite, inside, x0, y0, x1, y1, _, _ = _tap_box(h, w, un, vn)
+        if finite and inside:
+            out[y0, x0] = True
+            out[y0, x1] = True
+            out[y1, x0] = True
+            out[y1, x1] = True
+
+
 @njit(nogil=True, cache=True)
 def _forward(idx, d_ref, d_nb, v_nb, Rr, tr, kr, Rn, tn, kn, max_err, state):  # pragma: no cover
     """Round trip of every selected pixel: ``state`` rows (ok, error, u_n, v_n, d_n);
     returns (sum of errors, sum of exp(−error)·error, kept)."""
-    w = d_ref.shape[1]
     fxr, fyr, cxr, cyr = kr[0], kr[1], kr[2], kr[3]
     fxn, fyn, cxn, cyn = kn[0], kn[1], kn[2], kn[3]
     total, total_w, kept = 0.0, 0.0, 0
     for m in range(idx.shape[0]):
         state[m, _S_OK] = 0.0
-        p = idx[m]
-        ur, vr = (p % w) + 0.5, (p // w) + 0.5
-        dr = np.float64(d_ref[p // w, p % w])
-        X, Y, Z = _to_world(Rr, tr, (ur - cxr) / fxr * dr, (vr - cyr) / fyr * dr, dr)
-        cx, cy, cz = _to_cam(Rn, tn, X, Y, Z)
-        if not _in_front(cx, cy, cz):
+        front, ur, vr, un, vn, cz = _into_neighbour(idx[m], d_ref, Rr, tr, kr, Rn, tn, kn)
+        if not front:
             continue
-        un, vn = fxn * cx / cz + cxn, fyn * cy / cz + cyn
         dn, inside, _, _, _, _, _, _ = _taps(d_nb, un, vn)
         ok_v, _, _, _, _, _, _, _ = _taps(v_nb, un, vn)
         if not (inside and cz > 0.0 and ok_v > 0.999 and dn > 0.0):
@@ -216,6 +254,18 @@ class _MultiView(torch.autograd.Function):
             run_workers(_backward_part, nw, args)
         g_nb_t = torch.from_numpy(g_nb.sum(0)).to(dt_nb)
         return torch.from_numpy(g_ref).to(dt_ref), g_nb_t, None, None
+
+
+def neighbour_footprint(depth_ref: Tensor, idx: Tensor, cam_ref: Camera, cam_nb: Camera) -> Tensor:
+    """(H, W) bool of the neighbour view: the pixels whose depth and validity
+    :func:`multi_view_loss_compiled` reads for the reference pixels ``idx``, by the same
+    arithmetic (a neighbour rendered at these pixels only gives the same loss and
+    gradients as a whole one)."""
+    out = np.zeros((cam_nb.height, cam_nb.width), np.bool_)
+    ids = idx.to(torch.int64).contiguous().numpy()
+    a_ref = depth_ref.detach().contiguous().numpy()
+    _footprint(ids, a_ref, *_cam(cam_ref), *_cam(cam_nb), out)
+    return torch.from_numpy(out)
 
 
 def multi_view_loss_compiled(

@@ -52,7 +52,9 @@ from core.training.init_points import visual_hull_points
 from core.training.losses import (
     edge_weight,
     mask_loss,
+    multi_view_footprint,
     multi_view_loss,
+    multi_view_pixels,
     rgb_loss,
     scale_loss,
     single_view_loss,
@@ -481,6 +483,13 @@ class Trainer:
         nb = self.plan.neighbour_of(vi)
         if phase.multi_view and cfg.loss.multi_view > 0 and nb is not None:
             nview = self._targets[nb]
+            with stage("multi_view_pixels"):
+                # drawn before the neighbour is rendered, so it is rendered where the
+                # loss reads it only (same loss and gradients as a whole view)
+                mv_pixels = multi_view_pixels(valid, cfg.loss.multiview_pixels, self.gen)
+                footprint = multi_view_footprint(
+                    depth.detach(), mv_pixels, view.camera, nview.camera
+                )
             with stage("neighbour"):
                 with stage("view_opacity"):
                     cull_n = view_opacity_scale(
@@ -496,7 +505,7 @@ class Trainer:
                         antialiased=phase.antialiased, lowpass=phase.lowpass,
                         opacity_scale=cull_n, normals=normals, with_roughness=False,
                         geometry_only=True,  # read for its depth and normals only
-                        splat_order=phase.splat_order,
+                        splat_order=phase.splat_order, pixels=footprint,
                     )  # fmt: skip
                 with stage("depth"):
                     d_n, v_n = geometry_depth(gb_n, phase.planar_depth)
@@ -507,8 +516,7 @@ class Trainer:
             with stage("multi_view_loss"):
                 mv, _ = multi_view_loss(
                     depth, valid, view.camera, d_n, v_n, nview.camera,
-                    max_error_px=cfg.loss.multiview_max_error_px,
-                    n_pixels=cfg.loss.multiview_pixels, generator=self.gen,
+                    max_error_px=cfg.loss.multiview_max_error_px, pixels=mv_pixels,
                     error_weighting=cfg.loss.multiview_error_weighting,
                 )  # fmt: skip
             terms["multi_view"] = cfg.loss.multi_view * mv

@@ -9,7 +9,7 @@ how they composite; projection (EWA, low-pass) and tile binning are shared.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from typing import Literal
 
@@ -169,6 +169,7 @@ def rasterize(
     plane_order: bool | Literal["auto"] = False,
     plane_normals: Tensor | None = None,
     plane_reach: Tensor | None = None,
+    pixels: Tensor | None = None,
 ) -> RasterResult:
     """Splat Gaussians for one camera.
 
@@ -184,7 +185,15 @@ def rasterize(
     ``"auto"``: where the backend can, else centre order (gsplat). ``plane_normals``
     (N, 3, world): the planes' normals where the caller has them (the G-buffer's);
     ``plane_reach`` (N,): their ``plane_reach`` where the caller kept it (a frozen model).
+    ``pixels`` (H, W) bool: the pixels the caller will read; the others come back empty
+    (zero features and alpha). Plane order's kernels skip them (a training step reads a
+    few thousand of its neighbour view's pixels); elsewhere they are composited and
+    zeroed.
     """
+    if pixels is not None and tuple(pixels.shape) != (camera.height, camera.width):
+        raise ValueError(
+            f"pixels must be (H, W) = ({camera.height}, {camera.width}), got {tuple(pixels.shape)}"
+        )
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
     if features.ndim != 2 or features.shape[0] != means.shape[0]:
@@ -201,11 +210,12 @@ def rasterize(
             "in its own centre-depth order (set splat_order: centre)"
         )
     if name in PIPELINES:
-        return PIPELINES[name](
+        res = PIPELINES[name](
             means, quats, scales, opacities, features, camera, covariances=covariances,
             near=near, far=far, eps2d=eps2d, tile_size=tile_size, absgrad=absgrad,
             antialiased=antialiased,
         )  # fmt: skip
+        return _only(res, pixels)
     if absgrad:
         raise BackendUnavailableError(
             f"absgrad (AbsGS densification) needs the cuda backend; '{name}' does not compute it"
@@ -228,15 +238,32 @@ def rasterize(
             slab=order_slab,
         )  # fmt: skip
     fn = BACKENDS[name][1]
+    native_pixels = False
     if plane_order:
         keys = plane_keys(means, quats, scales, camera, covariances, plane_normals, plane_reach)
-        plane_fn = rasterize_cpu_plane if name == "cpu" else rasterize_reference_plane
-        fn = partial(plane_fn, order=keys)
+        if name == "cpu":
+            fn, native_pixels = partial(rasterize_cpu_plane, order=keys, pixels=pixels), True
+        else:
+            fn = partial(rasterize_reference_plane, order=keys)
     if antialiased and proj.compensation is not None:
         opacities = opacities * proj.compensation
     with stage("composite"):
         feats, alpha = fn(proj, opacities, features, bins, W, H)
-    return RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
+    res = RasterResult(feats, alpha, proj.means2d, proj.radii, proj.depths, name)
+    return res if native_pixels else _only(res, pixels)
+
+
+def _only(res: RasterResult, pixels: Tensor | None) -> RasterResult:
+    """``res`` with the pixels outside ``pixels`` emptied (a backend that composited
+    them all)."""
+    if pixels is None:
+        return res
+    keep = pixels.to(device=res.alpha.device, dtype=torch.bool)
+    return replace(
+        res,
+        features=torch.where(keep[..., None], res.features, res.features.new_zeros(())),
+        alpha=torch.where(keep, res.alpha, res.alpha.new_zeros(())),
+    )
 
 
 def _bin_radii(radii: Tensor, opacities: Tensor) -> Tensor:

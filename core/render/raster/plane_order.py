@@ -255,6 +255,23 @@ def _no_runs(npdt: type) -> tuple[np.ndarray, ...]:
     )
 
 
+def _need(pixels: Tensor | None, height: int, width: int) -> np.ndarray:
+    """The kernels' per-pixel flags (H, W) uint8 of a caller's pixel mask, or an empty
+    array for every pixel."""
+    if pixels is None:
+        return np.empty((0, 0), np.uint8)
+    if tuple(pixels.shape) != (height, width):
+        raise ValueError(f"pixels must be ({height}, {width}), got {tuple(pixels.shape)}")
+    return np.ascontiguousarray(pixels.detach().cpu().numpy().astype(np.uint8, copy=False))
+
+
+def _has_gradient(grad_feat: np.ndarray, grad_alpha: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """The pixels the backward walks: composited ones with a non-zero upstream gradient
+    (the others' contributions are all zero)."""
+    live = (grad_alpha != 0) | (grad_feat != 0).any(axis=-1)
+    return (live & (last > 0)).astype(np.uint8)
+
+
 def _give_runs(ctx) -> None:
     """Return a forward's run buffers to the pool once its backward has read them; a
     second backward (retain_graph) then rebuilds every tile instead of reading them."""
@@ -280,6 +297,7 @@ class PlaneOrderComposite(torch.autograd.Function):
         height: int,
         order: PlaneKeys,
         keep_runs: bool = True,
+        pixels: Tensor | None = None,
     ) -> tuple[Tensor, Tensor]:
         dtype = _compute_dtype(means2d, conics, opacities, features)
         n_ch = features.shape[1]
@@ -302,7 +320,8 @@ class PlaneOrderComposite(torch.autograd.Function):
                 *(_kept_views(pooled, n_tiles * room, height, width) if pooled else _no_runs(npdt)),
                 np.zeros(n_tiles, np.int8),
             )
-            args = (*setup.args(), *extra, out_feat, out_T, out_last, *runs)
+            need = _need(pixels, height, width)
+            args = (*setup.args(), *extra, out_feat, out_T, out_last, *runs, need)
             run_workers(_forward_worker, kernel_threads(), args)
             ctx.pooled = pooled
         ctx.save_for_backward(means2d, conics, opacities, features)
@@ -335,7 +354,8 @@ class PlaneOrderComposite(torch.autograd.Function):
                     if grad_alpha is None
                     else _np(grad_alpha, dtype)
                 )
-                args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf)
+                need = _has_gradient(gf, ga, out_last)
+                args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf, need)
                 run_workers(_backward_worker, n_workers, args)
                 _give_runs(ctx)
             widths = (_G_A - _G_MX, _G_O - _G_A, _G_F - _G_O, n_ch)
@@ -349,7 +369,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                     parts, shapes, in_dtypes, ctx.needs_input_grad[:4], strict=True
                 )
             ]
-        return (*out, None, None, None, None, None)
+        return (*out, None, None, None, None, None, None)
 
 
 def rasterize_cpu_plane(
@@ -360,9 +380,11 @@ def rasterize_cpu_plane(
     width: int,
     height: int,
     order: PlaneKeys,
+    pixels: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """The compiled backend's compositing in per-pixel plane order (float32 or float64)."""
+    """The compiled backend's compositing in per-pixel plane order (float32 or float64);
+    ``pixels`` (H, W) bool: only these are composited, the others come back empty."""
     tensors = (proj.means2d, proj.conics, opacities.reshape(-1), features)
     keep = torch.is_grad_enabled() and any(t.requires_grad for t in tensors)
-    feats, alpha = PlaneOrderComposite.apply(*tensors, bins, width, height, order, keep)
+    feats, alpha = PlaneOrderComposite.apply(*tensors, bins, width, height, order, keep, pixels)
     return feats.to(features.dtype), alpha.to(features.dtype)

@@ -62,7 +62,7 @@ def _count_candidates(
 def _fill_sorted(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
     mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-    since, reach_min,
+    since, reach_min, need,
 ):  # fmt: skip  # pragma: no cover - numba
     """Each pixel p's contributors (alpha ≥ 1/255) as places in the tile list (entry
     ``lo + k`` holds Gaussian ``gauss_ids[lo + k]``) ``cand_i[begin[p]:end[p]]``, sorted
@@ -83,6 +83,10 @@ def _fill_sorted(
     every pixel has saturated in front of the nearest plane any later entry can
     have (``reach_min``: suffix minima of z - h).
 
+    A pixel that ``need`` (H, W; empty: every pixel) leaves out starts stopped at -inf:
+    its run stays empty and costs one comparison an entry, and the tile's stop no longer
+    waits for it (the needed pixels' runs are exactly what they would be).
+
     Returns False, leaving the runs unfinished, where a pixel's run outgrows its room
     (``begin[p + 1] - begin[p]``): with rooms from :func:`_count_candidates` it cannot."""
     half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
@@ -93,6 +97,11 @@ def _fill_sorted(
         stop_key[p] = inf
         t_all[p] = 1.0
         since[p] = 0
+    if need.shape[0] > 0:
+        for py in range(y0, y1):
+            for px in range(x0, x1):
+                if not need[py, px]:
+                    stop_key[(py - y0) * tile_size + (px - x0)] = -inf
     n = hi - lo
     lowest = inf
     for k in range(n - 1, -1, -1):
@@ -194,7 +203,7 @@ def _saturate(
 def _tile_runs(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
     mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all,
-    since, reach_min,
+    since, reach_min, need,
 ):  # fmt: skip  # pragma: no cover - numba
     """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`);
     returns the candidate arrays and the suffix-minimum buffer (grown where needed).
@@ -216,7 +225,7 @@ def _tile_runs(
     if _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
         mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-        since, reach_min,
+        since, reach_min, need,
     ):  # fmt: skip
         return cand_i, cand_key, cand_g, reach_min
     total = _count_candidates(
@@ -233,7 +242,7 @@ def _tile_runs(
     _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
         mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-        since, reach_min,
+        since, reach_min, need,
     )  # fmt: skip
     return cand_i, cand_key, cand_g, reach_min
 
@@ -259,6 +268,18 @@ def _scratch(tile_size, opac):  # pragma: no cover - numba
     )
 
 
+@njit(nogil=True, fastmath=False, cache=True)
+def _tile_needed(need, x0, x1, y0, y1):  # pragma: no cover - numba
+    """Whether ``need`` (H, W; empty: every pixel) asks for any pixel of the box."""
+    if need.shape[0] == 0:
+        return True
+    for py in range(y0, y1):
+        for px in range(x0, x1):
+            if need[py, px]:
+                return True
+    return False
+
+
 @njit(nogil=True, fastmath=False, cache=True, inline="always")
 def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
     """Pixel bounds x0, y0, x1, y1 (exclusive) of tile t."""
@@ -271,14 +292,15 @@ def _tile_box(t, tiles_x, tile_size, width, height):  # pragma: no cover - numba
 def _forward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
     xs, ys, consts, mode, geo, planes, intr, out_feat, out_T, out_last,
-    run_g, run_G, run_T, run_at, tile_kept,
+    run_g, run_G, run_T, run_at, tile_kept, need,
 ):  # fmt: skip  # pragma: no cover - numba
     """Tiles w, w + n_workers, ...: each pixel's contributors in plane order, composited
     front to back (out_T starts at 1, the others at 0); ``out_last`` counts the
     contributors composited. Where ``run_g`` has room (``run_g.shape[0] // n_tiles``
     entries a tile) the composited runs are kept for the backward: pixel (y, x)'s
     places in the tile list, exp(power) and transmittance in front of each at
-    ``run_at[y, x]`` on, and ``tile_kept[t] = 1``."""
+    ``run_at[y, x]`` on, and ``tile_kept[t] = 1``. Pixels ``need`` (H, W; empty:
+    all) leaves out come back empty (a loss reads a few pixels of this view)."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max, t_min = consts[1], consts[3], consts[4]
@@ -291,10 +313,12 @@ def _forward_worker(
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        if not _tile_needed(need, x0, x1, y0, y1):
+            continue
         cand_i, cand_key, cand_g, reach_min = _tile_runs(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
             consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
-            stop_key, t_all, since, reach_min,
+            stop_key, t_all, since, reach_min, need,
         )  # fmt: skip
         kept = room > 0
         at = t * room
@@ -377,14 +401,17 @@ def _contribution_backward(
 def _backward_worker(
     w, n_workers, means2d, conics, opac, feats, gauss_ids, offsets, tiles_x, tile_size,
     xs, ys, consts, mode, geo, planes, intr, final_T, last, run_g, run_G, run_T, run_at,
-    tile_kept, grad_feat, grad_alpha, gbuf,
+    tile_kept, grad_feat, grad_alpha, gbuf, need,
 ):  # fmt: skip  # pragma: no cover - numba
     """Each pixel's contributors in the forward's order, back to front: the forward's
     kept runs, or (a tile it had no room for) the runs rebuilt, their transmittances
     recomputed front to back as the forward did. A tile's gradients are summed per
     entry of its list first (``acc``: a few thousand rows, in cache, where scattering
     each contribution into gbuf[w, gaussian] missed it half the backward's time), then
-    added into gbuf once an entry."""
+    added into gbuf once an entry. Only the pixels in ``need`` (H, W: those with a
+    non-zero upstream gradient; the others' contributions are all zero) are walked, and
+    a tile rebuilds the runs of those pixels only, or nothing where it has none: the
+    multi-view term reads a few thousand of a neighbour view's pixels."""
     height, width, _ = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max = consts[1], consts[3]
@@ -398,6 +425,8 @@ def _backward_worker(
         if hi == lo:
             continue
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        if not _tile_needed(need, x0, x1, y0, y1):
+            continue
         if hi - lo > acc.shape[0]:
             acc = np.empty((2 * (hi - lo), n_q), np.float64)
         acc[: hi - lo] = 0.0
@@ -406,12 +435,12 @@ def _backward_worker(
             cand_i, cand_key, cand_g, reach_min = _tile_runs(
                 lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
                 consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
-                stop_key, t_all, since, reach_min,
+                stop_key, t_all, since, reach_min, need,
             )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
                 m_used = last[py, px]
-                if m_used == 0:
+                if m_used == 0 or not need[py, px]:
                     continue
                 ga_T = np.float64(grad_alpha[py, px]) * np.float64(final_T[py, px])
                 R = 0.0
