@@ -360,8 +360,7 @@ def _forward_worker(
 
 @njit(nogil=True, fastmath=False, cache=True, inline="always")
 def _contribution_backward(
-    k, g, G, T_before, R, ga_T, px, py, means2d, conics, opac, feats, xs, ys, a_max,
-    grad_feat, acc,
+    k, G, T_before, R, ga_T, px, py, tdat, xs, ys, a_max, grad_feat, acc,
 ):  # fmt: skip  # pragma: no cover - numba
     """One contributor's gradients (Gaussian g, place k in the tile list), back to front
     (the compiled backend's formulas), added into ``acc[k]``, given the transmittance in
@@ -369,8 +368,8 @@ def _contribution_backward(
     transmittance comes from the forward rather than from dividing back from the
     final one: that division chained each contributor to the next (a pixel-major
     walk has nothing else to overlap it with) and was most of the backward's time."""
-    n_ch = feats.shape[1]
-    raw = opac[g] * G
+    n_ch = tdat.shape[1] - 6
+    raw = tdat[k, 5] * G
     alpha = a_max if raw > a_max else raw
     al = np.float64(alpha)
     one_m = 1.0 - al
@@ -378,16 +377,16 @@ def _contribution_backward(
     gf = 0.0
     for ch in range(n_ch):
         gc = np.float64(grad_feat[py, px, ch])
-        gf += gc * np.float64(feats[g, ch])
+        gf += gc * np.float64(tdat[k, 6 + ch])
         acc[k, 6 + ch] += wgt * gc
     d_alpha = T_before * gf + (ga_T - R) / one_m
     R += wgt * gf
     if raw > a_max:
         return R  # clamped: alpha depends on neither o nor the footprint
     d_pow = al * d_alpha
-    dxd = np.float64(xs[px] - means2d[g, 0])
-    dyd = np.float64(ys[py] - means2d[g, 1])
-    ad, bd, cd = np.float64(conics[g, 0]), np.float64(conics[g, 1]), np.float64(conics[g, 2])
+    dxd = np.float64(xs[px] - tdat[k, 0])
+    dyd = np.float64(ys[py] - tdat[k, 1])
+    ad, bd, cd = np.float64(tdat[k, 2]), np.float64(tdat[k, 3]), np.float64(tdat[k, 4])
     acc[k, 0] += (ad * dxd + bd * dyd) * d_pow
     acc[k, 1] += (cd * dyd + bd * dxd) * d_pow
     acc[k, 2] -= 0.5 * dxd * dxd * d_pow
@@ -395,6 +394,24 @@ def _contribution_backward(
     acc[k, 4] -= 0.5 * dyd * dyd * d_pow
     acc[k, 5] += np.float64(G) * d_alpha
     return R
+
+
+@njit(nogil=True, fastmath=False, cache=True)
+def _gather_entries(lo, hi, gauss_ids, means2d, conics, opac, feats, tdat):  # pragma: no cover
+    """Row k of ``tdat``: tile entry lo + k's centre, conic, opacity and features, so
+    the backward's pixel-major walk reads one compact block (in cache) instead of
+    the whole model at random."""
+    n_ch = feats.shape[1]
+    for k in range(hi - lo):
+        g = gauss_ids[lo + k]
+        tdat[k, 0] = means2d[g, 0]
+        tdat[k, 1] = means2d[g, 1]
+        tdat[k, 2] = conics[g, 0]
+        tdat[k, 3] = conics[g, 1]
+        tdat[k, 4] = conics[g, 2]
+        tdat[k, 5] = opac[g]
+        for ch in range(n_ch):
+            tdat[k, 6 + ch] = feats[g, ch]
 
 
 @njit(nogil=True, fastmath=False, cache=True)
@@ -420,6 +437,7 @@ def _backward_worker(
     )
     n_q = 6 + feats.shape[1]
     acc = np.empty((1024, n_q), np.float64)
+    tdat = np.empty((1024, n_q), feats.dtype)
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -429,7 +447,9 @@ def _backward_worker(
             continue
         if hi - lo > acc.shape[0]:
             acc = np.empty((2 * (hi - lo), n_q), np.float64)
+            tdat = np.empty((2 * (hi - lo), n_q), feats.dtype)
         acc[: hi - lo] = 0.0
+        _gather_entries(lo, hi, gauss_ids, means2d, conics, opac, feats, tdat)
         kept = tile_kept[t] == 1
         if not kept:
             cand_i, cand_key, cand_g, reach_min = _tile_runs(
@@ -449,8 +469,8 @@ def _backward_worker(
                     for j in range(at + m_used - 1, at - 1, -1):
                         k = run_g[j]
                         R = _contribution_backward(
-                            k, gauss_ids[lo + k], run_G[j], np.float64(run_T[j]), R, ga_T, px,
-                            py, means2d, conics, opac, feats, xs, ys, a_max, grad_feat, acc,
+                            k, run_G[j], np.float64(run_T[j]), R, ga_T, px, py, tdat, xs, ys,
+                            a_max, grad_feat, acc,
                         )  # fmt: skip
                     continue
                 p = (py - y0) * tile_size + (px - x0)
@@ -465,8 +485,8 @@ def _backward_worker(
                 for j in range(s0 + m_used - 1, s0 - 1, -1):
                     k = cand_i[j]
                     R = _contribution_backward(
-                        k, gauss_ids[lo + k], cand_g[j], cand_key[j], R, ga_T, px, py, means2d,
-                        conics, opac, feats, xs, ys, a_max, grad_feat, acc,
+                        k, cand_g[j], cand_key[j], R, ga_T, px, py, tdat, xs, ys, a_max,
+                        grad_feat, acc,
                     )  # fmt: skip
         for k in range(hi - lo):
             g = gauss_ids[lo + k]
