@@ -157,6 +157,24 @@ def test_float32_matches_reference(seed, channels):
     _assert_grads_close(g_cpu, g_ref, rtol=1e-4, atol_rel=1e-4)
 
 
+@pytest.mark.parametrize("dtype", [F64, torch.float32], ids=["numba f64", "f32 (SIMD where built)"])
+def test_pixels_no_loss_reads_walk_nothing(dtype):
+    """A loss that reads scattered pixels (some their features, some their alpha): the
+    backward skips the rest, and the gradients are still the reference's."""
+    cam = _camera(40, 33)
+    scene = _scene(200, 8, 4, dtype)
+    w_feat, w_alpha = _weights(cam, 4, 8)
+    g = torch.Generator().manual_seed(1)
+    w_feat = w_feat * (torch.rand(33, 40, generator=g) < 0.3)[..., None]
+    w_alpha = w_alpha * (torch.rand(33, 40, generator=g) < 0.3)
+    _, g_cpu = _run("cpu", scene, cam, (w_feat, w_alpha))
+    _, g_ref = _run("reference", scene, cam, (w_feat, w_alpha))
+    if dtype == F64:
+        _assert_grads_close(g_cpu, g_ref, rtol=1e-8, atol_rel=1e-9)
+    else:
+        _assert_grads_close(g_cpu, g_ref, rtol=1e-4, atol_rel=1e-4)
+
+
 def test_many_channels_and_partial_requires_grad():
     cam = _camera(24, 18)
     scene = _scene(60, 8, 37)

@@ -430,6 +430,15 @@ def _np(t: Tensor, dtype: torch.dtype) -> np.ndarray:
     return t.detach().to(dtype).contiguous().numpy()
 
 
+def has_gradient(grad_feat: np.ndarray, grad_alpha: np.ndarray, last: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the pixels a compositing backward walks, those with contributors and
+    a non-zero upstream gradient. A loss that reads a few pixels (L_multi reads about a
+    quarter of its neighbour view at 128²) leaves the others at zero, and their
+    contributions' gradients are zero too."""
+    live = (grad_alpha != 0) | (grad_feat != 0).any(axis=-1)
+    return live & (last > 0)
+
+
 class _Setup:
     """Numpy views and per-Gaussian culling data shared by forward and backward."""
 
@@ -542,10 +551,12 @@ class CpuComposite(torch.autograd.Function):
                     ga = np.zeros((height, width), out_T.dtype)
                 else:
                     ga = _np(grad_alpha, dtype)
+                # a pixel no loss reads walks nothing (its contributions' gradients are 0)
+                last = np.where(has_gradient(gf, ga, out_last), out_last, 0).astype(np.int32)
                 if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
-                    ctx.kernel.backward(n_workers, out_T, out_last, gf, ga, gbuf)
+                    ctx.kernel.backward(n_workers, out_T, last, gf, ga, gbuf)
                 else:
-                    args = (*setup.args(), out_T, out_last, gf, ga, gbuf)
+                    args = (*setup.args(), out_T, last, gf, ga, gbuf)
                     run_workers(_backward_worker, n_workers, args)
             # the workers' sums added and split into the four inputs' gradients, in their
             # dtypes, in one pass (nothing may keep a view of the pooled buffer)

@@ -57,6 +57,7 @@ from core.render.raster.cpu import (
     _np,
     _reduce_split_range,
     _Setup,
+    has_gradient,
 )
 from core.render.raster.plane_order_kernels import _backward_worker, _forward_worker
 from core.render.raster.projection import ALPHA_MAX, ALPHA_MIN, T_MIN, Projected
@@ -265,13 +266,6 @@ def _need(pixels: Tensor | None, height: int, width: int) -> np.ndarray:
     return np.ascontiguousarray(pixels.detach().cpu().numpy().astype(np.uint8, copy=False))
 
 
-def _has_gradient(grad_feat: np.ndarray, grad_alpha: np.ndarray, last: np.ndarray) -> np.ndarray:
-    """The pixels the backward walks: composited ones with a non-zero upstream gradient
-    (the others' contributions are all zero)."""
-    live = (grad_alpha != 0) | (grad_feat != 0).any(axis=-1)
-    return (live & (last > 0)).astype(np.uint8)
-
-
 def _give_runs(ctx) -> None:
     """Return a forward's run buffers to the pool once its backward has read them; a
     second backward (retain_graph) then rebuilds every tile instead of reading them."""
@@ -354,7 +348,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                     if grad_alpha is None
                     else _np(grad_alpha, dtype)
                 )
-                need = _has_gradient(gf, ga, out_last)
+                need = has_gradient(gf, ga, out_last).astype(np.uint8)
                 args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf, need)
                 run_workers(_backward_worker, n_workers, args)
                 _give_runs(ctx)
