@@ -190,6 +190,8 @@ def test_pixels_read_and_pixels_asked_for(store: str, monkeypatch: pytest.Monkey
     assert float(feats[~pixels].abs().max()) == 0.0
     with pytest.raises(ValueError, match=r"pixels must be \(H, W\) = \(40, 48\)"):
         rasterize(*scene, cam, backend="cpu", plane_order=True, pixels=pixels.T)
+    with pytest.raises(ValueError, match=r"pixels must be a bool mask, got dtype torch\.float32"):
+        rasterize(*scene, cam, backend="cpu", plane_order=True, pixels=pixels.float())
 
 
 def _opaque_wall(n: int, dtype: torch.dtype, seed: int) -> tuple[torch.Tensor, ...]:

@@ -194,6 +194,8 @@ def rasterize(
         raise ValueError(
             f"pixels must be (H, W) = ({camera.height}, {camera.width}), got {tuple(pixels.shape)}"
         )
+    if pixels is not None and pixels.dtype != torch.bool:
+        raise ValueError(f"pixels must be a bool mask, got dtype {pixels.dtype}")
     if covariances is None and (quats is None or scales is None):
         raise ValueError("rasterize needs quats and scales, or covariances")
     if features.ndim != 2 or features.shape[0] != means.shape[0]:
