@@ -137,7 +137,7 @@ def multi_view_footprint(
     """(H, W) bool: the neighbour pixels :func:`multi_view_loss` will read for the
     reference pixels ``idx`` (:func:`multi_view_pixels`), so the neighbour need only be
     rendered there (``render_gbuffer(pixels=...)``): at 128² with 4096 pixels drawn
-    about two thirds of a view, at 800² 3%. None where the loss runs as torch ops
+    about half a view, at 800² 3%. None where the loss runs as torch ops
     (not CPU float tensors), whose arithmetic the footprint does not repeat."""
     if not cpu_float(depth_ref):
         return None
