@@ -434,9 +434,25 @@ def has_gradient(grad_feat: np.ndarray, grad_alpha: np.ndarray, last: np.ndarray
     """(H, W) bool: the pixels a compositing backward walks, those with contributors and
     a non-zero upstream gradient. A loss that reads a few pixels (L_multi reads about a
     quarter of its neighbour view at 128²) leaves the others at zero, and their
-    contributions' gradients are zero too."""
-    live = (grad_alpha != 0) | (grad_feat != 0).any(axis=-1)
-    return live & (last > 0)
+    contributions' gradients are zero too. One compiled pass that stops at a pixel's
+    first non-zero channel: numpy's ``!=``/``any`` over every channel took 16 ms a
+    backward at 800² where every pixel is read."""
+    out = np.empty(last.shape, np.bool_)
+    _has_gradient(grad_feat, grad_alpha, last, out)
+    return out
+
+
+@njit(nogil=True, cache=True)
+def _has_gradient(grad_feat, grad_alpha, last, out):  # pragma: no cover - numba
+    height, width, n_ch = grad_feat.shape
+    for py in range(height):
+        for px in range(width):
+            live = last[py, px] > 0 and grad_alpha[py, px] != 0
+            ch = 0
+            while last[py, px] > 0 and not live and ch < n_ch:
+                live = grad_feat[py, px, ch] != 0
+                ch += 1
+            out[py, px] = live
 
 
 class _Setup:
@@ -552,7 +568,7 @@ class CpuComposite(torch.autograd.Function):
                 else:
                     ga = _np(grad_alpha, dtype)
                 # a pixel no loss reads walks nothing (its contributions' gradients are 0)
-                last = np.where(has_gradient(gf, ga, out_last), out_last, 0).astype(np.int32)
+                last = np.where(has_gradient(gf, ga, out_last), out_last, 0)
                 if ctx.kernel is not None:  # the SIMD forward's decisions, replayed
                     ctx.kernel.backward(n_workers, out_T, last, gf, ga, gbuf)
                 else:

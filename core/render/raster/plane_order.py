@@ -257,13 +257,13 @@ def _no_runs(npdt: type) -> tuple[np.ndarray, ...]:
 
 
 def _need(pixels: Tensor | None, height: int, width: int) -> np.ndarray:
-    """The kernels' per-pixel flags (H, W) uint8 of a caller's pixel mask, or an empty
+    """The kernels' per-pixel flags (H, W) bool of a caller's pixel mask, or an empty
     array for every pixel."""
     if pixels is None:
-        return np.empty((0, 0), np.uint8)
+        return np.empty((0, 0), np.bool_)
     if tuple(pixels.shape) != (height, width):
         raise ValueError(f"pixels must be ({height}, {width}), got {tuple(pixels.shape)}")
-    return np.ascontiguousarray(pixels.detach().cpu().numpy().astype(np.uint8, copy=False))
+    return np.ascontiguousarray(pixels.detach().cpu().numpy())
 
 
 def _give_runs(ctx) -> None:
@@ -348,7 +348,7 @@ class PlaneOrderComposite(torch.autograd.Function):
                     if grad_alpha is None
                     else _np(grad_alpha, dtype)
                 )
-                need = has_gradient(gf, ga, out_last).astype(np.uint8)
+                need = has_gradient(gf, ga, out_last)
                 args = (*setup.args(), *ctx.extra, out_T, out_last, *runs, gf, ga, gbuf, need)
                 run_workers(_backward_worker, n_workers, args)
                 _give_runs(ctx)
