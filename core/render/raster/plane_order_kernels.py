@@ -61,13 +61,18 @@ def _count_candidates(
 @njit(nogil=True, fastmath=False, cache=True)
 def _fill_sorted(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-    since, reach_min, need,
+    mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt,
+    stop_key, t_all, since, reach_min, need,
 ):  # fmt: skip  # pragma: no cover - numba
-    """Each pixel p's contributors (alpha ≥ 1/255) as places in the tile list (entry
-    ``lo + k`` holds Gaussian ``gauss_ids[lo + k]``) ``cand_i[begin[p]:end[p]]``, sorted
-    by plane depth (stable: entries arrive in tile
-    order and ties keep it), with their Gaussian factor exp(power) in ``cand_g``.
+    """Each pixel p's contributors (alpha ≥ 1/255), sorted by plane depth (stable:
+    entries arrive in tile order and ties keep it), as slots ``cand_s[begin[p]:end[p]]``
+    (keys in ``cand_key``). A slot s holds the contributor's place in the tile list
+    ``cand_i[s]`` (entry ``lo + k`` holds Gaussian ``gauss_ids[lo + k]``), its Gaussian
+    factor exp(power) ``cand_g[s]`` and its alpha ``cand_a[s]``, written once: the
+    insertion sort shifts only keys and slots (a trained model's view shifts about ten
+    entries an insertion, its splats of one surface arriving in no particular order),
+    and the walks and the compositing read alpha without looking up the opacity. Slots
+    are taken in order from ``nxt[p]`` and not reused when a walk drops entries.
     Gaussian-major over the entries with the compiled backend's culling ellipses (a
     culling only: every visited pixel is tested with the reference formula). Insertion
     sort: the centre order is close to the plane order, so a heap (tried) was 2.6×
@@ -87,13 +92,15 @@ def _fill_sorted(
     its run stays empty and costs one comparison an entry, and the tile's stop no longer
     waits for it (the needed pixels' runs are exactly what they would be).
 
-    Returns False, leaving the runs unfinished, where a pixel's run outgrows its room
-    (``begin[p + 1] - begin[p]``): with rooms from :func:`_count_candidates` it cannot."""
+    Returns False, leaving the runs unfinished, where a pixel's slots outgrow its room
+    (``begin[p + 1] - begin[p]``): with rooms from :func:`_count_candidates` (every
+    insertion is a candidate) they cannot."""
     half, one, a_min, a_max, t_min = consts[0], consts[1], consts[2], consts[3], consts[4]
     npix = tile_size * tile_size
     inf = np.inf
     for p in range(npix):
         end[p] = begin[p]
+        nxt[p] = begin[p]
         stop_key[p] = inf
         t_all[p] = 1.0
         since[p] = 0
@@ -154,18 +161,24 @@ def _fill_sorted(
                 key = min(max(key, zlo), z + h)
                 if key >= stop_key[p]:
                     continue
-                j = end[p]
-                if j >= begin[p + 1]:
+                slot = nxt[p]
+                if slot >= begin[p + 1]:
                     return False
+                nxt[p] = slot + 1
+                cand_i[slot] = i - lo
+                cand_g[slot] = G
+                a_st = o * cand_g[slot]  # as the compositing computes it, in opac's dtype
+                if a_st > a_max:
+                    a_st = a_max
+                cand_a[slot] = a_st
+                j = end[p]
                 s0 = begin[p]
-                while j > s0 and cand_key[j - 1] > key:  # entries arrive in tile order,
-                    cand_key[j] = cand_key[j - 1]  # nearly sorted: a few shifts
-                    cand_i[j] = cand_i[j - 1]
-                    cand_g[j] = cand_g[j - 1]
+                while j > s0 and cand_key[j - 1] > key:
+                    cand_key[j] = cand_key[j - 1]
+                    cand_s[j] = cand_s[j - 1]
                     j -= 1
                 cand_key[j] = key
-                cand_i[j] = i - lo
-                cand_g[j] = G
+                cand_s[j] = slot
                 end[p] += 1
                 since[p] += 1
                 t_all[p] *= 1.0 - np.float64(alpha)
@@ -173,25 +186,19 @@ def _fill_sorted(
                     since[p] = 0
                     if t_all[p] < t_min:
                         stop_key[p] = _saturate(
-                            begin[p], end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one,
-                            a_max, t_min,
-                        )  # fmt: skip
+                            begin[p], end, p, cand_key, cand_s, cand_a, one, t_min
+                        )
     return True
 
 
 @njit(nogil=True, fastmath=False, cache=True)
-def _saturate(
-    s0, end, p, cand_i, cand_key, cand_g, opac, gauss_ids, lo, one, a_max, t_min
-):  # fmt: skip  # pragma: no cover - numba
+def _saturate(s0, end, p, cand_key, cand_s, cand_a, one, t_min):  # pragma: no cover - numba
     """Walk pixel p's sorted run front to back as the compositing does; where it stops
     (the entry that takes the transmittance below T_MIN) drop what lies behind and
     return that entry's key, else +inf."""
     T = one
     for j in range(s0, end[p]):
-        alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
-        if alpha > a_max:
-            alpha = a_max
-        test_T = T * (one - alpha)
+        test_T = T * (one - cand_a[cand_s[j]])
         if test_T < t_min:
             end[p] = j + 1
             return cand_key[j]
@@ -202,8 +209,8 @@ def _saturate(
 @njit(nogil=True, fastmath=False, cache=True)
 def _tile_runs(
     lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all,
-    since, reach_min, need,
+    mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt, rx, ry,
+    stop_key, t_all, since, reach_min, need,
 ):  # fmt: skip  # pragma: no cover - numba
     """The tile's per-pixel contributor runs in plane order (:func:`_fill_sorted`);
     returns the candidate arrays and the suffix-minimum buffer (grown where needed).
@@ -224,10 +231,10 @@ def _tile_runs(
         begin[p] = p * share
     if _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-        since, reach_min, need,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt,
+        stop_key, t_all, since, reach_min, need,
     ):  # fmt: skip
-        return cand_i, cand_key, cand_g, reach_min
+        return cand_i, cand_key, cand_g, cand_s, cand_a, reach_min
     total = _count_candidates(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, gauss_ids, mode, geo, begin
     )
@@ -239,18 +246,21 @@ def _tile_runs(
         cand_i = np.empty(want, np.int32)
         cand_key = np.empty(want, np.float64)
         cand_g = np.empty(want, cand_g.dtype)
+        cand_s = np.empty(want, np.int32)
+        cand_a = np.empty(want, cand_a.dtype)
     _fill_sorted(
         lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys, consts,
-        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, stop_key, t_all,
-        since, reach_min, need,
+        mode, geo, planes, rx, ry, begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt,
+        stop_key, t_all, since, reach_min, need,
     )  # fmt: skip
-    return cand_i, cand_key, cand_g, reach_min
+    return cand_i, cand_key, cand_g, cand_s, cand_a, reach_min
 
 
 @njit(nogil=True, fastmath=False, cache=True)
 def _scratch(tile_size, opac):  # pragma: no cover - numba
-    """A worker's buffers: run bounds, room for 64 contributors a pixel (grown per tile
-    where needed), the tile's ray slopes, the early termination's per-pixel state and
+    """A worker's buffers: run bounds, room for 64 contributors a pixel (keys, slots and
+    the slots' place, exp(power) and alpha; grown per tile where needed), the next free
+    slot a pixel, the tile's ray slopes, the early termination's per-pixel state and
     the tile list's suffix minima (grown where needed)."""
     npix = tile_size * tile_size
     return (
@@ -259,6 +269,9 @@ def _scratch(tile_size, opac):  # pragma: no cover - numba
         np.empty(64 * npix, np.int32),
         np.empty(64 * npix, np.float64),
         np.empty(64 * npix, opac.dtype),
+        np.empty(64 * npix, np.int32),
+        np.empty(64 * npix, opac.dtype),
+        np.zeros(npix, np.int64),
         np.empty(tile_size, np.float64),
         np.empty(tile_size, np.float64),
         np.empty(npix, np.float64),
@@ -303,11 +316,12 @@ def _forward_worker(
     all) leaves out come back empty (a loss reads a few pixels of this view)."""
     height, width, n_ch = out_feat.shape
     n_tiles = offsets.shape[0] - 1
-    one, a_max, t_min = consts[1], consts[3], consts[4]
+    one, t_min = consts[1], consts[4]
     room = run_g.shape[0] // max(n_tiles, 1)
-    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
-        tile_size, opac
-    )
+    (
+        begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt, rx, ry, stop_key, t_all, since,
+        reach_min,
+    ) = _scratch(tile_size, opac)  # fmt: skip
     for t in range(w, n_tiles, n_workers):
         lo, hi = offsets[t], offsets[t + 1]
         if hi == lo:
@@ -315,10 +329,10 @@ def _forward_worker(
         x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
         if not _tile_needed(need, x0, x1, y0, y1):
             continue
-        cand_i, cand_key, cand_g, reach_min = _tile_runs(
+        cand_i, cand_key, cand_g, cand_s, cand_a, reach_min = _tile_runs(
             lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
-            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
-            stop_key, t_all, since, reach_min, need,
+            consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, cand_s, cand_a,
+            nxt, rx, ry, stop_key, t_all, since, reach_min, need,
         )  # fmt: skip
         kept = room > 0
         at = t * room
@@ -331,16 +345,15 @@ def _forward_worker(
                 T = one
                 m_used = 0
                 for j in range(begin[p], end[p]):
-                    k = cand_i[j]
-                    g = gauss_ids[lo + k]
-                    G = cand_g[j]
-                    alpha = opac[g] * G
-                    if alpha > a_max:
-                        alpha = a_max
+                    slot = cand_s[j]
+                    k = cand_i[slot]
+                    G = cand_g[slot]
+                    alpha = cand_a[slot]
                     test_T = T * (one - alpha)
                     if test_T < t_min:
                         break
                     wgt = alpha * T
+                    g = gauss_ids[lo + k]
                     for ch in range(n_ch):
                         out_feat[py, px, ch] += feats[g, ch] * wgt
                     if kept:
@@ -432,9 +445,10 @@ def _backward_worker(
     height, width, _ = grad_feat.shape
     n_tiles = offsets.shape[0] - 1
     one, a_max = consts[1], consts[3]
-    begin, end, cand_i, cand_key, cand_g, rx, ry, stop_key, t_all, since, reach_min = _scratch(
-        tile_size, opac
-    )
+    (
+        begin, end, cand_i, cand_key, cand_g, cand_s, cand_a, nxt, rx, ry, stop_key, t_all, since,
+        reach_min,
+    ) = _scratch(tile_size, opac)  # fmt: skip
     n_q = 6 + feats.shape[1]
     acc = np.empty((1024, n_q), np.float64)
     tdat = np.empty((1024, n_q), feats.dtype)
@@ -452,10 +466,10 @@ def _backward_worker(
         _gather_entries(lo, hi, gauss_ids, means2d, conics, opac, feats, tdat)
         kept = tile_kept[t] == 1
         if not kept:
-            cand_i, cand_key, cand_g, reach_min = _tile_runs(
+            cand_i, cand_key, cand_g, cand_s, cand_a, reach_min = _tile_runs(
                 lo, hi, x0, x1, y0, y1, tile_size, means2d, conics, opac, gauss_ids, xs, ys,
-                consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, rx, ry,
-                stop_key, t_all, since, reach_min, need,
+                consts, mode, geo, planes, intr, begin, end, cand_i, cand_key, cand_g, cand_s,
+                cand_a, nxt, rx, ry, stop_key, t_all, since, reach_min, need,
             )  # fmt: skip
         for py in range(y0, y1):
             for px in range(x0, x1):
@@ -478,15 +492,12 @@ def _backward_worker(
                 T = one  # the sort keys are spent: their slots take the transmittances
                 for j in range(s0, s0 + m_used):
                     cand_key[j] = T
-                    alpha = opac[gauss_ids[lo + cand_i[j]]] * cand_g[j]
-                    if alpha > a_max:
-                        alpha = a_max
-                    T = T * (one - alpha)
+                    T = T * (one - cand_a[cand_s[j]])
                 for j in range(s0 + m_used - 1, s0 - 1, -1):
-                    k = cand_i[j]
+                    slot = cand_s[j]
                     R = _contribution_backward(
-                        k, cand_g[j], cand_key[j], R, ga_T, px, py, tdat, xs, ys, a_max,
-                        grad_feat, acc,
+                        cand_i[slot], cand_g[slot], cand_key[j], R, ga_T, px, py, tdat, xs, ys,
+                        a_max, grad_feat, acc,
                     )  # fmt: skip
         for k in range(hi - lo):
             g = gauss_ids[lo + k]
