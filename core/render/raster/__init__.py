@@ -260,7 +260,7 @@ def _only(res: RasterResult, pixels: Tensor | None) -> RasterResult:
     them all)."""
     if pixels is None:
         return res
-    keep = pixels.to(device=res.alpha.device, dtype=torch.bool)
+    keep = pixels.to(res.alpha.device)  # bool: rasterize refuses any other dtype
     return replace(
         res,
         features=torch.where(keep[..., None], res.features, res.features.new_zeros(())),

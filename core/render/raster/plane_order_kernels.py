@@ -375,9 +375,9 @@ def _forward_worker(
 def _contribution_backward(
     k, G, T_before, R, ga_T, px, py, tdat, xs, ys, a_max, grad_feat, acc,
 ):  # fmt: skip  # pragma: no cover - numba
-    """One contributor's gradients (Gaussian g, place k in the tile list), back to front
-    (the compiled backend's formulas), added into ``acc[k]``, given the transmittance in
-    front of it; returns the colour behind it. The
+    """One contributor's gradients (place k in the tile list, its Gaussian's data in
+    ``tdat[k]``), back to front (the compiled backend's formulas), added into ``acc[k]``,
+    given the transmittance in front of it; returns the colour behind it. The
     transmittance comes from the forward rather than from dividing back from the
     final one: that division chained each contributor to the next (a pixel-major
     walk has nothing else to overlap it with) and was most of the backward's time."""
@@ -489,7 +489,7 @@ def _backward_worker(
                     continue
                 p = (py - y0) * tile_size + (px - x0)
                 s0 = begin[p]
-                T = one  # the sort keys are spent: their slots take the transmittances
+                T = one  # the sort keys are spent: their places take the transmittances
                 for j in range(s0, s0 + m_used):
                     cand_key[j] = T
                     T = T * (one - cand_a[cand_s[j]])
