@@ -1,0 +1,117 @@
+"""Where a shiny object reflects itself, and how much of a run's error lies there.
+
+The deferred shading reflects a distant environment map: a reflected ray never meets
+the object. Inside a concavity it does (the renderer traced 12 bounces), so there the
+images show the object's own other wall, which no env-map lookup can give. This marks,
+on each test view, the object pixels whose mirror reflection (true depth, true normal)
+hits the true mesh again (embree, ``trimesh.ray``), reports their share of the object,
+and with ``--run`` splits that run's rendered depth error and colour error between
+those pixels and the rest.
+
+    python -m bench.self_reflection ../shared/data/rocker_gold_256 [--run RUN]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+import trimesh
+
+from core.evaluation.geometry import SURFACE_ALPHA
+from core.model.trained import TrainedModel
+from core.scene.formats import load_scene
+from core.scene.groundtruth import GroundTruth, load_ground_truth
+from core.scene.views import View
+
+# the reflected ray starts this far off the surface (scene units; the objects have radius 1),
+# so it does not hit the triangle it leaves
+RAY_OFFSET = 1e-3
+
+
+def self_reflecting(view: View, gt: GroundTruth, mesh: trimesh.Trimesh) -> np.ndarray:
+    """(H, W) bool: object pixels whose mirror reflection meets the mesh again."""
+    cam = view.camera
+    points = cam.backproject(cam.pixel_centers(torch.float64), gt.depth.double())
+    _, rays = cam.world_rays(torch.float64)
+    n = F.normalize(gt.normal_world.double(), dim=-1)
+    refl = rays - 2.0 * (rays * n).sum(-1, keepdim=True) * n
+    on = gt.mask.numpy()
+    out = np.zeros(on.shape, bool)
+    out[on] = mesh.ray.intersects_any((points + RAY_OFFSET * n).numpy()[on], refl.numpy()[on])
+    return out
+
+
+@torch.no_grad()
+def split(root: Path, run: Path | None) -> dict:
+    """The self-reflecting share of the test views' object pixels and, with a run, its
+    mean |depth error|, signed median depth error (+ = behind the truth) and colour
+    error on those pixels and on the rest."""
+    mesh = trimesh.load(root / "gt_mesh.ply", process=False)
+    model = TrainedModel.open(run) if run is not None else None
+    pixels = {True: 0, False: 0}
+    dz: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    sq: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    for v in load_scene(root).test:
+        gt = load_ground_truth(root, v)
+        if gt is None:
+            continue
+        mine = self_reflecting(v, gt, mesh)
+        on = gt.mask.numpy()
+        for k in (True, False):
+            pixels[k] += int((on & (mine == k)).sum())
+        if model is None:
+            continue
+        frame = model.render(v.camera, ("final", "depth"))
+        depth, valid = frame.depth()
+        both = on & (valid & (frame.gbuffer.alpha > SURFACE_ALPHA)).numpy()
+        err = (depth.double() - gt.depth.double()).numpy()
+        img = frame.image("final").double().numpy()
+        truth = v.composited(model.background.cpu()).double().numpy()
+        colour = ((img - truth) ** 2).mean(-1)
+        for k in (True, False):
+            dz[k].append(err[both & (mine == k)])
+            sq[k].append(colour[on & (mine == k)])
+    total = pixels[True] + pixels[False]
+    out: dict = {"self_share": pixels[True] / max(total, 1)}
+    if model is not None:
+        abs_total = sum(float(np.abs(np.concatenate(dz[k])).sum()) for k in (True, False))
+        sq_total = sum(float(np.concatenate(sq[k]).sum()) for k in (True, False))
+        for k, name in ((True, "self"), (False, "other")):
+            e, c = np.concatenate(dz[k]), np.concatenate(sq[k])
+            out[name] = {
+                "mean_abs_dz": float(np.abs(e).mean()),
+                "signed_median_dz": float(np.median(e)),
+                "share_of_abs_dz": float(np.abs(e).sum()) / abs_total,
+                "psnr": float(10 * np.log10(1.0 / c.mean())),
+                "share_of_sq_error": float(c.sum()) / sq_total,
+            }
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scenes", nargs="+", type=Path)
+    ap.add_argument("--run", type=Path, help="a run of the (single) scene to split the error of")
+    args = ap.parse_args()
+    if args.run is not None and len(args.scenes) != 1:
+        ap.error("--run takes one scene")
+    for root in args.scenes:
+        r = split(root, args.run)
+        print(f"{root.name}: {r['self_share']:.1%} of the object pixels reflect the object")
+        for name in ("self", "other"):
+            if name in r:
+                s = r[name]
+                print(
+                    f"  {name:5s} mean |dz| {s['mean_abs_dz']:.4f}  signed median "
+                    f"{s['signed_median_dz']:+.4f}  share of |dz| {s['share_of_abs_dz']:.2f}  "
+                    f"PSNR {s['psnr']:.2f}  share of squared colour error "
+                    f"{s['share_of_sq_error']:.2f}"
+                )
+
+
+if __name__ == "__main__":
+    main()
