@@ -8,7 +8,10 @@ hits the true mesh again (embree, ``trimesh.ray``), reports their share of the o
 and with ``--run`` splits that run's rendered depth error and colour error between
 those pixels and the rest.
 
-    python -m bench.self_reflection ../shared/data/rocker_gold_256 [--run RUN]
+    python -m bench.self_reflection ../shared/data/rocker_gold_256 [--run RUN [--plot PNG]]
+
+``--plot`` draws the first test views: truth, render, the rendered depth's error and the
+self-reflecting pixels, side by side.
 """
 
 from __future__ import annotations
@@ -92,13 +95,53 @@ def split(root: Path, run: Path | None) -> dict:
     return out
 
 
+@torch.no_grad()
+def plot(root: Path, run: Path, out: Path, views: int = 4) -> None:
+    """Truth, render, signed depth error (+ = behind the truth) and the self-reflecting
+    pixels of the first ``views`` test views, one row each."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    mesh = trimesh.load(root / "gt_mesh.ply", process=False)
+    model = TrainedModel.open(run)
+    picked = [v for v in load_scene(root).test if load_ground_truth(root, v) is not None]
+    picked = picked[:views]
+    if not picked:
+        raise SystemExit(f"{root}: no test view with true depth and normals")
+    fig, axes = plt.subplots(len(picked), 4, figsize=(13, 3.3 * len(picked)), squeeze=False)
+    for row, v in zip(axes, picked, strict=True):
+        gt = load_ground_truth(root, v)
+        assert gt is not None
+        frame = model.render(v.camera, ("final", "depth"))
+        depth, valid = frame.depth()
+        err = (depth.double() - gt.depth.double()).numpy()
+        err[~(gt.mask & valid).numpy()] = np.nan
+        row[0].imshow(v.composited(model.background.cpu()).clamp(0, 1).numpy())
+        row[1].imshow(frame.image("final").clamp(0, 1).numpy())
+        im = row[2].imshow(err, cmap="coolwarm", vmin=-0.05, vmax=0.05)
+        fig.colorbar(im, ax=row[2], fraction=0.046)
+        row[3].imshow(self_reflecting(v, gt, mesh), cmap="gray")
+        titles = ("truth", "render", "depth error (+ behind the truth)", "reflects itself")
+        for ax, title in zip(row, titles, strict=True):
+            ax.set_title(f"{v.name or ''} {title}".strip(), fontsize=9)
+            ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(out, dpi=70)
+    plt.close(fig)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scenes", nargs="+", type=Path)
     ap.add_argument("--run", type=Path, help="a run of the (single) scene to split the error of")
+    ap.add_argument("--plot", type=Path, help="with --run: a PNG of the first test views")
     args = ap.parse_args()
     if args.run is not None and len(args.scenes) != 1:
         ap.error("--run takes one scene")
+    if args.plot is not None and args.run is None:
+        ap.error("--plot needs --run")
     for root in args.scenes:
         r = split(root, args.run)
         print(f"{root.name}: {r['self_share']:.1%} of the object pixels reflect the object")
@@ -111,6 +154,9 @@ def main() -> None:
                     f"PSNR {s['psnr']:.2f}  share of squared colour error "
                     f"{s['share_of_sq_error']:.2f}"
                 )
+    if args.plot is not None:
+        plot(args.scenes[0], args.run, args.plot)
+        print(f"wrote {args.plot}")
 
 
 if __name__ == "__main__":
