@@ -35,6 +35,14 @@ from core.scene.views import View
 RAY_OFFSET = 1e-3
 
 
+def true_mesh(root: Path) -> trimesh.Trimesh:
+    """The rendered scene's ``gt_mesh.ply``, or an exit naming the file it needs."""
+    path = root / "gt_mesh.ply"
+    if not path.is_file():
+        raise SystemExit(f"{path}: missing (a rendered scene with its true mesh is needed)")
+    return trimesh.load(path, process=False)
+
+
 def self_reflecting(view: View, gt: GroundTruth, mesh: trimesh.Trimesh) -> np.ndarray:
     """(H, W) bool: object pixels whose mirror reflection meets the mesh again."""
     cam = view.camera
@@ -53,7 +61,7 @@ def split(root: Path, run: Path | None) -> dict:
     """The self-reflecting share of the test views' object pixels and, with a run, its
     mean |depth error|, signed median depth error (+ = behind the truth) and colour
     error on those pixels and on the rest."""
-    mesh = trimesh.load(root / "gt_mesh.ply", process=False)
+    mesh = true_mesh(root)
     model = TrainedModel.open(run) if run is not None else None
     pixels = {True: 0, False: 0}
     dz: dict[bool, list[np.ndarray]] = {True: [], False: []}
@@ -104,7 +112,7 @@ def plot(root: Path, run: Path, out: Path, views: int = 4) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    mesh = trimesh.load(root / "gt_mesh.ply", process=False)
+    mesh = true_mesh(root)
     model = TrainedModel.open(run)
     picked = [v for v in load_scene(root).test if load_ground_truth(root, v) is not None]
     picked = picked[:views]
