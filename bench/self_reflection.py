@@ -25,6 +25,7 @@ import torch.nn.functional as F
 import trimesh
 
 from core.evaluation.geometry import SURFACE_ALPHA
+from core.evaluation.metrics import to_display
 from core.model.trained import TrainedModel
 from core.scene.formats import load_scene
 from core.scene.groundtruth import GroundTruth, load_ground_truth
@@ -60,7 +61,7 @@ def self_reflecting(view: View, gt: GroundTruth, mesh: trimesh.Trimesh) -> np.nd
 def split(root: Path, run: Path | None) -> dict:
     """The self-reflecting share of the test views' object pixels and, with a run, its
     mean |depth error|, signed median depth error (+ = behind the truth) and colour
-    error on those pixels and on the rest."""
+    error (display values, as the run record's PSNR) on those pixels and on the rest."""
     mesh = true_mesh(root)
     model = TrainedModel.open(run) if run is not None else None
     pixels = {True: 0, False: 0}
@@ -80,8 +81,9 @@ def split(root: Path, run: Path | None) -> dict:
         depth, valid = frame.depth()
         both = on & (valid & (frame.gbuffer.alpha > SURFACE_ALPHA)).numpy()
         err = (depth.double() - gt.depth.double()).numpy()
-        img = frame.image("final").double().numpy()
-        truth = v.composited(model.background.cpu()).double().numpy()
+        # display values, as the run record's PSNR
+        img = to_display(frame.image("final")).double().numpy()
+        truth = to_display(v.composited(model.background.cpu())).double().numpy()
         colour = ((img - truth) ** 2).mean(-1)
         for k in (True, False):
             dz[k].append(err[both & (mine == k)])
