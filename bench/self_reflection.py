@@ -27,6 +27,7 @@ import trimesh
 from core.evaluation.geometry import SURFACE_ALPHA
 from core.evaluation.metrics import to_display
 from core.model.trained import TrainedModel
+from core.render.shading import reflect
 from core.scene.formats import load_scene
 from core.scene.groundtruth import GroundTruth, load_ground_truth
 from core.scene.views import View
@@ -50,7 +51,7 @@ def self_reflecting(view: View, gt: GroundTruth, mesh: trimesh.Trimesh) -> np.nd
     points = cam.backproject(cam.pixel_centers(torch.float64), gt.depth.double())
     _, rays = cam.world_rays(torch.float64)
     n = F.normalize(gt.normal_world.double(), dim=-1)
-    refl = rays - 2.0 * (rays * n).sum(-1, keepdim=True) * n
+    refl = reflect(rays, n)
     on = gt.mask.numpy()
     out = np.zeros(on.shape, bool)
     out[on] = mesh.ray.intersects_any((points + RAY_OFFSET * n).numpy()[on], refl.numpy()[on])
@@ -91,10 +92,12 @@ def split(root: Path, run: Path | None) -> dict:
     total = pixels[True] + pixels[False]
     out: dict = {"self_share": pixels[True] / max(total, 1)}
     if model is not None:
-        abs_total = sum(float(np.abs(np.concatenate(dz[k])).sum()) for k in (True, False))
-        sq_total = sum(float(np.concatenate(sq[k]).sum()) for k in (True, False))
+        errs = {k: np.concatenate(dz[k]) for k in (True, False)}
+        sqs = {k: np.concatenate(sq[k]) for k in (True, False)}
+        abs_total = sum(float(np.abs(e).sum()) for e in errs.values())
+        sq_total = sum(float(c.sum()) for c in sqs.values())
         for k, name in ((True, "self"), (False, "other")):
-            e, c = np.concatenate(dz[k]), np.concatenate(sq[k])
+            e, c = errs[k], sqs[k]
             out[name] = {
                 "mean_abs_dz": float(np.abs(e).mean()),
                 "signed_median_dz": float(np.median(e)),
@@ -116,14 +119,17 @@ def plot(root: Path, run: Path, out: Path, views: int = 4) -> None:
 
     mesh = true_mesh(root)
     model = TrainedModel.open(run)
-    picked = [v for v in load_scene(root).test if load_ground_truth(root, v) is not None]
-    picked = picked[:views]
+    picked = []
+    for v in load_scene(root).test:
+        gt = load_ground_truth(root, v)
+        if gt is not None:
+            picked.append((v, gt))
+        if len(picked) == views:
+            break
     if not picked:
         raise SystemExit(f"{root}: no test view with true depth and normals")
     fig, axes = plt.subplots(len(picked), 4, figsize=(13, 3.3 * len(picked)), squeeze=False)
-    for row, v in zip(axes, picked, strict=True):
-        gt = load_ground_truth(root, v)
-        assert gt is not None
+    for row, (v, gt) in zip(axes, picked, strict=True):
         frame = model.render(v.camera, ("final", "depth"))
         depth, valid = frame.depth()
         err = (depth.double() - gt.depth.double()).numpy()
