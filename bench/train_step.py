@@ -151,13 +151,13 @@ def run(args: argparse.Namespace) -> dict:
     def deferred() -> None:
         with torch.no_grad():
             gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
-            deferred_shade(gb, env, white)
+            deferred_shade(gb, env, white, fresnel=cfg.ablation.fresnel)
 
     def full_step(multi_view: bool = True, order: str = cfg.splat_order) -> None:
         gb, _ = render_gbuffer(
             gs, cam, sh_degree=3, backend=backend, antialiased=aa, splat_order=order
         )
-        shade = deferred_shade(gb, env, white)
+        shade = deferred_shade(gb, env, white, fresnel=cfg.ablation.fresnel)
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)

@@ -216,6 +216,13 @@ class Ablation(_Strict):
         "lookup); True: each splat learns a roughness and reads the env map's mip chain at "
         "the level it gives (core/render/roughness.py, core/render/envmap_mips.py)",
     )
+    fresnel: bool = Field(
+        True,
+        description="False: w_r is the same from every angle (the paper's Eq. 9); True: "
+        "the reflection rises towards grazing angles (Schlick's Fresnel, lowered for rough "
+        "surfaces) and takes its light from the base colour, so bright rims need no bent "
+        "normals (core/render/fresnel.py)",
+    )
     mask_coverage: bool = Field(
         True,
         description="False: coverage is fitted only through the colours composited over the "
@@ -451,13 +458,21 @@ LEGACY_DEFAULTS: dict[str, Any] = {
 }
 
 
+# Ablation switches added after runs were first saved, with the value those runs had.
+LEGACY_ABLATION: dict[str, Any] = {"fresnel": False}
+
+
 def saved_config(data: dict[str, Any], source: str = "saved config") -> TrainConfig:
     """The config of an existing run (config.json or a checkpoint's copy).
 
     A field the run predates gets the value it actually trained with, not today's
     default: a classic-splatted model rendered antialiased loses its silhouettes.
     """
-    return config_from_dict({**LEGACY_DEFAULTS, **data}, source)
+    merged = {**LEGACY_DEFAULTS, **data}
+    ablation = merged.get("ablation")
+    if ablation is None or isinstance(ablation, dict):  # anything else: the validator's
+        merged["ablation"] = {**LEGACY_ABLATION, **(ablation or {})}
+    return config_from_dict(merged, source)
 
 
 # Fields a run may be resumed with changed: where it runs, and what its export writes

@@ -248,7 +248,7 @@ def test_bench_configs_take_a_time_budget() -> None:
 
 def test_paper_row_switches_off_every_addition_and_full_keeps_them() -> None:
     additions = ("silhouette", "one_sided", "grazing_opacity", "same_surface_normals",
-                 "facing_depth", "roughness", "mask_coverage")  # fmt: skip
+                 "facing_depth", "roughness", "fresnel", "mask_coverage")  # fmt: skip
     paper, full = bench_config("paper", 300, 0.5), bench_config("full", 300, 0.5)
     for name in additions:
         assert getattr(paper.ablation, name) is False, name
@@ -260,6 +260,8 @@ def test_paper_row_switches_off_every_addition_and_full_keeps_them() -> None:
     assert rough.ablation.roughness is False and rough.ablation.deferred_shading is True
     assert rough.plan_overrides == {"envmap": True}  # the env map stays: only mirror lookups
     assert parse_configs("no_roughness") == ["no_roughness"]
+    assert bench_config("no_fresnel", 300, 0.5).ablation.fresnel is False
+    assert "Fresnel" in LABELS["no_fresnel"] and "no_fresnel" in TABLE_ORDER
     assert "roughness" in LABELS["no_roughness"] and "no_roughness" in TABLE_ORDER
     # every configuration has a label and a place in the table
     assert set(LABELS) == set(CONFIGS) == set(TABLE_ORDER)

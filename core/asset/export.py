@@ -31,7 +31,7 @@ import trimesh
 
 from core.asset.bake import bake_memory_bytes, bake_views, pick_views
 from core.asset.glb import GLTF_FROM_WORLD, GlbMesh, GlbTextures, write_glb
-from core.asset.material import gltf_material, irradiance_sh
+from core.asset.material import fresnel_averaged, gltf_material, irradiance_sh
 from core.asset.occlusion import ambient_occlusion, embree_available
 from core.asset.texels import TexelSamples, fill_unknown, rasterize_atlas
 from core.asset.uv_mesh import simplify_to_budget, unwrap
@@ -192,8 +192,11 @@ def export_asset(
             occlusion_note = "skipped: embreex is not installed"
     step("occlusion")
     env_sh = None if model.envmap is None else irradiance_sh(model.envmap.texels())
+    base, w_r = baked.base, baked.w_r
+    if model.phase.fresnel:  # the model rises at grazing angles as glTF's does
+        base, w_r = fresnel_averaged(base, w_r, baked.roughness, baked.grazing)
     color, metallic, residual, exposure = gltf_material(
-        baked.base, baked.w_r, baked.normal, occlusion, env_sh, baked.grazing
+        base, w_r, baked.normal, occlusion, env_sh, baked.grazing
     )
     known = texels.mask()
     seen_img = texels.mask(baked.seen)

@@ -27,10 +27,14 @@ matched exactly; a coloured base with a strong reflection trades the two, and th
 says how much it missed. ρ is glTF's perceptual roughness as is (Glint's α = ρ², like
 glTF's GGX).
 
+A model trained with Fresnel (``Ablation.fresnel``, ``core.render.fresnel``) rises at
+grazing angles too: its own base and reflectance averaged over the same views
+(:func:`fresnel_averaged`) are what the fit matches, like for like.
+
 What is lost: the base's colour where the texel is mostly mirror (its F0 must stay
-near grey w_r), Fresnel (glTF's reflectance rises towards 1 at grazing angles, so rims
-come out brighter), a base brighter than the light can explain (c > 1 is clipped),
-inter-reflections that Cycles adds (Glint baked them into ``base``).
+near grey w_r), Fresnel for a model trained without it (glTF's reflectance rises towards
+1 at grazing angles, so rims come out brighter), a base brighter than the light can
+explain (c > 1 is clipped), inter-reflections that Cycles adds (Glint baked them into ``base``).
 """
 
 from __future__ import annotations
@@ -163,6 +167,18 @@ def fit_metallic_roughness(
         out_c[sl] = np.where(better[:, None], cg, c)
         out_e[sl] = np.minimum(eg, e)
     return out_c, out_m, out_e
+
+
+def fresnel_averaged(
+    base: np.ndarray, w_r: np.ndarray, roughness: np.ndarray, grazing: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """(base (N, 3), w_r (N,)) a Fresnel-trained model shows on average over the views
+    that saw each texel: ``core.render.fresnel`` is linear in (1 − cos θ)⁵, so its mean
+    is the formula at κ = ``grazing``, the mean the views' Schlick term."""
+    f0 = np.clip(w_r.astype(np.float64), 0.0, 1.0)
+    boost = np.maximum(1.0 - np.clip(roughness, 0.0, 1.0) - f0, 0.0) * np.clip(grazing, 0.0, 1.0)
+    keep = 1.0 - boost / np.maximum(1.0 - f0, 1e-6)
+    return base * keep[:, None], f0 + boost
 
 
 ENV_SCALES = np.geomspace(1.0 / 64, 4.0, 33)  # candidate exposures of the exported map

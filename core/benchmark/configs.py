@@ -1,6 +1,6 @@
 """The benchmark's configurations: the paper's Table 3 ablations, Glint's additions
 switched off (silhouette points, one-sided splats, grazing opacity, roughness-aware
-reflection, the mask term, plane order; all off = the paper's full model) and an SH-only
+reflection, Fresnel, the mask term, plane order; all off = the paper's full model) and an SH-only
 baseline."""
 
 from __future__ import annotations
@@ -23,6 +23,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "two_sided": {"one_sided": False},
     "no_grazing": {"grazing_opacity": False},
     "no_roughness": {"roughness": False},
+    "no_fresnel": {"fresnel": False},
     "central_normals": {"same_surface_normals": False},
     "all_angles": {"facing_depth": False},
     "sil_turns_normals": {"silhouette_holds_normals": False},
@@ -36,6 +37,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
         "same_surface_normals": False,
         "facing_depth": False,
         "roughness": False,
+        "fresnel": False,
         "mask_coverage": False,
     },
     "sh_only": {
@@ -60,6 +62,7 @@ LABELS = {
     "two_sided": "w/o one-sided splats",
     "no_grazing": "w/o grazing opacity",
     "no_roughness": "w/o roughness (mirror env-map lookups, Eq. 9)",
+    "no_fresnel": "w/o Fresnel (w_r the same from every angle, Eq. 9)",
     "central_normals": "w/o same-surface depth normals",
     "all_angles": "w/o facing-only depth losses",
     "sil_turns_normals": "silhouette term through Eq. 8's full gradient (turns normals)",
@@ -67,7 +70,7 @@ LABELS = {
     "no_mask_loss": "w/o the halo term (coverage fitted through the colours only)",
     "centre_order": "w/o plane order (each tile's splats in centre-depth order, as 3DGS)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
-    "points, grazing opacity, same-surface depth normals, facing-only depth losses, the "
+    "points, grazing opacity, Fresnel, same-surface depth normals, facing-only depth losses, the "
     "halo term, plane order)",
     "sh_only": "SH only (no deferred, no L_single, no L_multi; as published otherwise)",
 }
@@ -88,6 +91,7 @@ TABLE_ORDER = (
     "two_sided",
     "no_grazing",
     "no_roughness",
+    "no_fresnel",
     "central_normals",
     "all_angles",
     "sil_turns_normals",

@@ -50,6 +50,7 @@ class Phase:
     grazing: bool = False  # learned edge-on opacity fade (core.render.grazing)
     lowpass: float = 0.3  # px² added to each splat's 2D covariance (TrainConfig.lowpass_2d)
     splat_order: str = "centre"  # compositing order (TrainConfig.splat_order)
+    fresnel: bool = False  # reflection rising at grazing angles (core.render.fresnel)
 
 
 @dataclass(frozen=True)
@@ -135,4 +136,5 @@ def phase_at(
         grazing=ab.grazing_opacity,
         lowpass=cfg.lowpass_2d,
         splat_order=cfg.splat_order,
+        fresnel=ab.fresnel,
     )

@@ -290,7 +290,7 @@ class TrainedModel:
         if wanted & SHADED:
             enabled = phase.envmap and self.envmap is not None
             with stage("deferred_shading"):
-                shade = deferred_shade(gb, self.envmap, bg, enabled=enabled)
+                shade = deferred_shade(gb, self.envmap, bg, enabled=enabled, fresnel=phase.fresnel)
         return Frame(camera, gb, shade, bg, phase.planar_depth)
 
     def summary(self) -> dict[str, Any]:

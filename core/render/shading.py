@@ -17,6 +17,10 @@ Roughness. When the G-buffer carries a blended roughness (``core.render.roughnes
 E is read from the env map's mip chain at the level of detail that the pixel's ρ gives
 (``core.render.envmap_mips``); ρ is un-premultiplied by alpha first (it is a property
 of the surface, not of its coverage). Without it the lookup is the sharp one.
+
+Fresnel. With ``fresnel=True`` (``Ablation.fresnel``) w_r is the reflectance head-on and
+rises toward grazing angles, taking its light from the base colour
+(``core.render.fresnel``); off, Eq. 9 as published.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ from torch import Tensor
 from core.kernels.dispatch import cpu_float
 from core.render.envmap import EnvMap
 from core.render.envmap_mips import lod_range, mip_sizes, roughness_to_lod, sample_cube_lod
+from core.render.fresnel import apply_fresnel
 from core.render.gbuffer import GBuffer
 from core.render.reflection_compiled import reflection_and_lod
 from core.render.shading_compiled import can_shade_compiled, shade_compiled
@@ -97,6 +102,7 @@ def deferred_shade(
     enabled: bool = True,
     *,
     compiled: bool = True,
+    fresnel: bool = False,
 ) -> ShadeResult:
     """Eq. 9 for one view; see the module docstring for how coverage is composited.
 
@@ -107,6 +113,10 @@ def deferred_shade(
     with gradients (training) the reflected directions and LOD come from
     ``core.render.reflection_compiled``; ``compiled=False`` keeps the PyTorch path, the
     reference both are tested against.
+
+    ``fresnel``: the reflection rises towards grazing angles and takes its light from
+    the base colour (``core.render.fresnel``; ``Ablation.fresnel``). ``base`` and
+    ``w_r`` of the result stay the G-buffer's (the material at normal incidence).
     """
     base, alpha, w_r = gbuffer.base, gbuffer.alpha, gbuffer.w_r
     h, w = base.shape[:2]
@@ -126,7 +136,7 @@ def deferred_shade(
     rough = gbuffer.roughness
     if compiled and can_shade_compiled(tensors if rough is None else (*tensors, rough), envmap):
         # the kernel composites the background itself (no image-sized fill here)
-        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough)
+        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough, fresnel=fresnel)
         return ShadeResult(final, base, specular, w_r, refl)
     fill = (1.0 - alpha).unsqueeze(-1) * bg
     buffers = (gbuffer.normal, alpha) if rough is None else (gbuffer.normal, alpha, rough)
@@ -143,5 +153,10 @@ def deferred_shade(
             radiance = envmap.sample(refl)
         else:
             radiance = sample_cube_lod(envmap.texels(), refl, lod)
-    specular = w_r.unsqueeze(-1) * radiance
-    return ShadeResult(base + specular + fill, base, specular, w_r, refl)
+    shown_base, shown_w_r = base, w_r
+    if fresnel:
+        with stage("fresnel"):
+            rho = 0.0 if rough is None else pixel_roughness(rough, alpha)
+            shown_base, shown_w_r = apply_fresnel(base, gbuffer.normal, w_r, alpha, rho, cam)
+    specular = shown_w_r.unsqueeze(-1) * radiance
+    return ShadeResult(shown_base + specular + fill, base, specular, w_r, refl)

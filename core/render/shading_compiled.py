@@ -19,6 +19,9 @@ in one flat buffer once per frame (first row and padded size of each level). Wit
 roughness the buffer holds level 0 only and the roughness argument is ``None``, for
 which numba compiles a separate specialisation with the LOD code pruned: the same
 arithmetic, and the same speed, as before roughness existed.
+
+Fresnel. With ``fresnel`` the pixel's w_r and base are those of
+``core.render.fresnel.apply_fresnel`` (cos θ from the normal the reflection uses).
 """
 
 from __future__ import annotations
@@ -74,7 +77,7 @@ def _tap(face, sc, tc, ma, offset, p):  # pragma: no cover - numba
 @njit(nogil=True, cache=True)
 def _shade_rows(
     lo, hi, base, normal, w_r, alpha, rough, bg, rot, intr, packed, offsets, sizes,
-    lod_scale, min_major, final, specular, refl,
+    lod_scale, min_major, fresnel, final, specular, refl,
 ):  # fmt: skip  # pragma: no cover - numba
     """Shade pixel rows [lo, hi): final, specular and reflected direction per pixel.
 
@@ -106,6 +109,7 @@ def _shade_rows(
             dx, dy, dz = dx * inv_d, dy * inv_d, dz * inv_d
             # A pixel no splat reached (the background: often half a viewer frame) has a
             # zero normal, which reflects the view ray unchanged; skip its arithmetic.
+            cos = 0.0  # |view · normal|, for the Fresnel term (a zero normal reads 0)
             if n0 != 0.0 or n1 != 0.0 or n2 != 0.0:
                 nx = r00 * n0 + r10 * n1 + r20 * n2
                 ny = r01 * n0 + r11 * n1 + r21 * n2
@@ -116,6 +120,7 @@ def _shade_rows(
                     inv_n = 1.0 / math.sqrt(max(nx * nx + ny * ny + nz * nz, 1e-24))
                     nx, ny, nz = nx * inv_n, ny * inv_n, nz * inv_n
                 k = 2.0 * (dx * nx + dy * ny + dz * nz)
+                cos = min(0.5 * abs(k), 1.0)
                 dx, dy, dz = dx - k * nx, dy - k * ny, dz - k * nz  # the reflected direction
             refl[j, i, 0] = dx
             refl[j, i, 1] = dy
@@ -123,6 +128,18 @@ def _shade_rows(
             fill = 1.0 - alpha[j, i]
             big = max(abs(dx), abs(dy), abs(dz))
             w = np.float64(w_r[j, i])
+            keep = 1.0  # the share of the base colour the reflection leaves (Fresnel)
+            if fresnel:  # core.render.fresnel.apply_fresnel, per pixel
+                a = np.float64(alpha[j, i])
+                f0 = min(max(w / a, 0.0), 1.0) if a > 1e-6 else 0.0
+                rho = 0.0
+                if rough is not None:
+                    rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
+                    rho = min(rho, 1.0) if rho > 0.0 else 0.0
+                s = 1.0 - cos
+                boost = max(1.0 - rho - f0, 0.0) * (s * s) * (s * s) * s
+                keep = 1.0 - boost / max(1.0 - f0, 1e-6)
+                w = w + a * boost
             # w_r = 0 (background, diffuse surfaces) makes the specular term exactly 0:
             # the env map is finite, so the lookup is skipped there.
             if w != 0.0 and math.isfinite(dx + dy + dz) and big > min_major:
@@ -158,11 +175,11 @@ def _shade_rows(
                         val = val + frac * (top + gyw * (bot - top) - val)
                     spec = w * val
                     specular[j, i, c] = spec
-                    final[j, i, c] = base[j, i, c] + spec + fill * bg[c]
+                    final[j, i, c] = base[j, i, c] * keep + spec + fill * bg[c]
             else:
                 for c in range(n_ch):
                     specular[j, i, c] = 0.0
-                    final[j, i, c] = base[j, i, c] + fill * bg[c]
+                    final[j, i, c] = base[j, i, c] * keep + fill * bg[c]
 
 
 def can_shade_compiled(tensors: tuple[Tensor, ...], envmap: EnvMap) -> bool:
@@ -187,12 +204,15 @@ def shade_compiled(
     camera,
     envmap: EnvMap,
     roughness: Tensor | None = None,
+    *,
+    fresnel: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(final, specular, reflected_dir) of one view, as ``deferred_shade`` computes them.
 
     ``base``/``normal`` (H, W, 3), ``w_r``/``alpha`` (H, W) and ``bg`` (3,) as in the
     G-buffer; ``camera`` is the G-buffer's camera; ``roughness`` (H, W) the G-buffer's
-    blended roughness, or None for the sharp lookup. No autograd graph is built.
+    blended roughness, or None for the sharp lookup; ``fresnel`` as ``deferred_shade``'s.
+    No autograd graph is built.
     """
     dtype = base.dtype
     npdt = np.float32 if dtype == torch.float32 else np.float64
@@ -216,7 +236,7 @@ def shade_compiled(
         arr(base), arr(normal), arr(w_r), arr(alpha),
         None if roughness is None else arr(roughness), arr(bg), rot, intr, arr(packed),
         np.array(offsets, np.int64), np.array(sizes, np.int64), scale, min_major,
-        final, specular, refl,
+        bool(fresnel), final, specular, refl,
     )  # fmt: skip
     run_ranges(_shade_rows, h, args)
     return torch.from_numpy(final), torch.from_numpy(specular), torch.from_numpy(refl)

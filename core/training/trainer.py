@@ -139,7 +139,10 @@ def forward_view(
             held_plane=held_plane, splat_order=phase.splat_order,
         )  # fmt: skip
     with stage("deferred_shading"):
-        shade = deferred_shade(gb, envmap, background, enabled=phase.envmap and envmap is not None)
+        shade = deferred_shade(
+            gb, envmap, background, enabled=phase.envmap and envmap is not None,
+            fresnel=phase.fresnel,
+        )  # fmt: skip
     return gb, shade, res
 
 
