@@ -310,7 +310,7 @@ def test_envmap_defaults_activation_and_hdr():
     assert env.log_radiance.shape == (6, 128, 128, 3)
     assert (env.resolution, env.channels) == (128, 3)
     torch.testing.assert_close(env.texels(), torch.full((6, 128, 128, 3), 0.5))
-    assert list(env.state_dict()) == ["log_radiance"]
+    assert list(env.state_dict()) == ["log_radiance", "fresnel_logit"]  # the scene F0 too
     small = EnvMap(resolution=4, channels=1, init_value=2.0)
     assert small.log_radiance.shape == (6, 4, 4, 1)
     # HDR values far above 1 and small values round-trip through the activation

@@ -193,8 +193,9 @@ def export_asset(
     step("occlusion")
     env_sh = None if model.envmap is None else irradiance_sh(model.envmap.texels())
     base, w_r = baked.base, baked.w_r
-    if model.phase.fresnel:  # the model rises at grazing angles as glTF's does
-        base, w_r = fresnel_averaged(base, w_r, baked.roughness, baked.grazing)
+    if model.phase.fresnel and model.envmap is not None:  # it rises as glTF's does
+        f0 = float(model.envmap.fresnel_f0.detach())
+        base, w_r = fresnel_averaged(base, w_r, baked.roughness, baked.grazing, f0)
     color, metallic, residual, exposure = gltf_material(
         base, w_r, baked.normal, occlusion, env_sh, baked.grazing
     )

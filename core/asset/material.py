@@ -170,15 +170,18 @@ def fit_metallic_roughness(
 
 
 def fresnel_averaged(
-    base: np.ndarray, w_r: np.ndarray, roughness: np.ndarray, grazing: np.ndarray
+    base: np.ndarray,
+    w_r: np.ndarray,
+    roughness: np.ndarray,
+    grazing: np.ndarray,
+    f0: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(base (N, 3), w_r (N,)) a Fresnel-trained model shows on average over the views
     that saw each texel: ``core.render.fresnel`` is linear in (1 − cos θ)⁵, so its mean
-    is the formula at κ = ``grazing``, the mean the views' Schlick term."""
-    f0 = np.clip(w_r.astype(np.float64), 0.0, 1.0)
-    boost = np.maximum(1.0 - np.clip(roughness, 0.0, 1.0) - f0, 0.0) * np.clip(grazing, 0.0, 1.0)
-    keep = 1.0 - boost / np.maximum(1.0 - f0, 1e-6)
-    return base * keep[:, None], f0 + boost
+    is the formula at κ = ``grazing``, the views' mean Schlick term; ``f0`` the scene's
+    head-on reflectance (``EnvMap.fresnel_f0``)."""
+    rise = (1.0 - np.clip(roughness, 0.0, 1.0)) * np.clip(grazing, 0.0, 1.0)
+    return base * (1.0 - rise)[:, None], w_r * (1.0 + (1.0 - f0) / f0 * rise)
 
 
 ENV_SCALES = np.geomspace(1.0 / 64, 4.0, 33)  # candidate exposures of the exported map

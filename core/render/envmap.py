@@ -196,6 +196,9 @@ class _PaddedBilinear(torch.autograd.Function):
 MAX_LOG_RADIANCE = 16.0
 
 
+FRESNEL_MIN_F0 = 0.02
+
+
 class EnvMap(nn.Module):
     """Learnable cube map E (Eq. 9): ``log_radiance`` (6, R, R, C), radiance = exp of it.
 
@@ -228,6 +231,11 @@ class EnvMap(nn.Module):
         self.log_radiance = nn.Parameter(
             torch.full((6, resolution, resolution, channels), math.log(init_value))
         )
+        # The scene's head-on reflectance for the Fresnel rise (core.render.fresnel): a
+        # property of the material, kept with the light because Eq. 9 fixes only w_r · E,
+        # so how far a reflection rises toward grazing angles is relative to this map's
+        # scale. Learned with the map; starts at F0 = 0.51 (logit 0).
+        self.fresnel_logit = nn.Parameter(torch.zeros(()))
 
     @property
     def resolution(self) -> int:
@@ -236,6 +244,12 @@ class EnvMap(nn.Module):
     @property
     def channels(self) -> int:
         return self.log_radiance.shape[-1]
+
+    @property
+    def fresnel_f0(self) -> Tensor:
+        """F0 in [FRESNEL_MIN_F0, 1] (0-dim): the floor, water's 0.02, is the least any
+        real surface reflects head-on and bounds the rise (1 − F0) / F0 at 49×."""
+        return FRESNEL_MIN_F0 + (1.0 - FRESNEL_MIN_F0) * torch.sigmoid(self.fresnel_logit)
 
     def texels(self) -> Tensor:
         """Radiance per texel, (6, R, R, C), differentiable in ``log_radiance``."""
@@ -267,6 +281,8 @@ class EnvMap(nn.Module):
             raw = state_dict.pop(legacy)
             radiance = nn.functional.softplus(raw.double()).clamp_min(self.min_value)
             state_dict[prefix + "log_radiance"] = torch.log(radiance).to(raw.dtype)
+        if prefix + "fresnel_logit" not in state_dict:  # saved before Fresnel: unused there
+            state_dict[prefix + "fresnel_logit"] = torch.zeros(())
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def extra_repr(self) -> str:

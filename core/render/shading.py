@@ -18,9 +18,9 @@ E is read from the env map's mip chain at the level of detail that the pixel's œ
 (``core.render.envmap_mips``); œÅ is un-premultiplied by alpha first (it is a property
 of the surface, not of its coverage). Without it the lookup is the sharp one.
 
-Fresnel. With ``fresnel=True`` (``Ablation.fresnel``) w_r is the reflectance head-on and
-rises toward grazing angles, taking its light from the base colour
-(``core.render.fresnel``); off, Eq. 9 as published.
+Fresnel. With ``fresnel=True`` (``Ablation.fresnel``) the reflection rises toward grazing
+angles from the scene's learned head-on reflectance (``EnvMap.fresnel_f0``), taking its
+light from the base colour (``core.render.fresnel``); off, Eq. 9 as published.
 """
 
 from __future__ import annotations
@@ -114,9 +114,10 @@ def deferred_shade(
     ``core.render.reflection_compiled``; ``compiled=False`` keeps the PyTorch path, the
     reference both are tested against.
 
-    ``fresnel``: the reflection rises towards grazing angles and takes its light from
-    the base colour (``core.render.fresnel``; ``Ablation.fresnel``). ``base`` and
-    ``w_r`` of the result stay the G-buffer's (the material at normal incidence).
+    ``fresnel``: the reflection rises toward grazing angles and takes its light from
+    the base colour (``core.render.fresnel``; ``Ablation.fresnel``; the env map must be
+    an ``EnvMap``, whose ``fresnel_f0`` it reads). ``base`` and ``w_r`` of the result stay
+    the G-buffer's (the material head-on).
     """
     base, alpha, w_r = gbuffer.base, gbuffer.alpha, gbuffer.w_r
     h, w = base.shape[:2]
@@ -136,7 +137,8 @@ def deferred_shade(
     rough = gbuffer.roughness
     if compiled and can_shade_compiled(tensors if rough is None else (*tensors, rough), envmap):
         # the kernel composites the background itself (no image-sized fill here)
-        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough, fresnel=fresnel)
+        f0 = float(envmap.fresnel_f0.detach()) if fresnel else None
+        final, specular, refl = shade_compiled(*tensors, bg, cam, envmap, rough, fresnel_f0=f0)
         return ShadeResult(final, base, specular, w_r, refl)
     fill = (1.0 - alpha).unsqueeze(-1) * bg
     buffers = (gbuffer.normal, alpha) if rough is None else (gbuffer.normal, alpha, rough)
@@ -157,6 +159,8 @@ def deferred_shade(
     if fresnel:
         with stage("fresnel"):
             rho = 0.0 if rough is None else pixel_roughness(rough, alpha)
-            shown_base, shown_w_r = apply_fresnel(base, gbuffer.normal, w_r, alpha, rho, cam)
+            shown_base, shown_w_r = apply_fresnel(
+                base, gbuffer.normal, w_r, rho, envmap.fresnel_f0, cam
+            )
     specular = shown_w_r.unsqueeze(-1) * radiance
     return ShadeResult(shown_base + specular + fill, base, specular, w_r, refl)

@@ -20,7 +20,7 @@ roughness the buffer holds level 0 only and the roughness argument is ``None``, 
 which numba compiles a separate specialisation with the LOD code pruned: the same
 arithmetic, and the same speed, as before roughness existed.
 
-Fresnel. With ``fresnel`` the pixel's w_r and base are those of
+Fresnel. With ``fresnel_f0`` the pixel's w_r and base are those of
 ``core.render.fresnel.apply_fresnel`` (cos θ from the normal the reflection uses).
 """
 
@@ -77,7 +77,7 @@ def _tap(face, sc, tc, ma, offset, p):  # pragma: no cover - numba
 @njit(nogil=True, cache=True)
 def _shade_rows(
     lo, hi, base, normal, w_r, alpha, rough, bg, rot, intr, packed, offsets, sizes,
-    lod_scale, min_major, fresnel, final, specular, refl,
+    lod_scale, min_major, fresnel_f0, final, specular, refl,
 ):  # fmt: skip  # pragma: no cover - numba
     """Shade pixel rows [lo, hi): final, specular and reflected direction per pixel.
 
@@ -129,17 +129,16 @@ def _shade_rows(
             big = max(abs(dx), abs(dy), abs(dz))
             w = np.float64(w_r[j, i])
             keep = 1.0  # the share of the base colour the reflection leaves (Fresnel)
-            if fresnel:  # core.render.fresnel.apply_fresnel, per pixel
-                a = np.float64(alpha[j, i])
-                f0 = min(max(w / a, 0.0), 1.0) if a > 1e-6 else 0.0
+            if fresnel_f0 > 0.0:  # core.render.fresnel.apply_fresnel, per pixel
                 rho = 0.0
                 if rough is not None:
+                    a = np.float64(alpha[j, i])
                     rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
                     rho = min(rho, 1.0) if rho > 0.0 else 0.0
                 s = 1.0 - cos
-                boost = max(1.0 - rho - f0, 0.0) * (s * s) * (s * s) * s
-                keep = 1.0 - boost / max(1.0 - f0, 1e-6)
-                w = w + a * boost
+                rise = (1.0 - rho) * (s * s) * (s * s) * s
+                keep = 1.0 - rise
+                w = w * (1.0 + (1.0 - fresnel_f0) / fresnel_f0 * rise)
             # w_r = 0 (background, diffuse surfaces) makes the specular term exactly 0:
             # the env map is finite, so the lookup is skipped there.
             if w != 0.0 and math.isfinite(dx + dy + dz) and big > min_major:
@@ -205,13 +204,14 @@ def shade_compiled(
     envmap: EnvMap,
     roughness: Tensor | None = None,
     *,
-    fresnel: bool = False,
+    fresnel_f0: float | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """(final, specular, reflected_dir) of one view, as ``deferred_shade`` computes them.
 
     ``base``/``normal`` (H, W, 3), ``w_r``/``alpha`` (H, W) and ``bg`` (3,) as in the
     G-buffer; ``camera`` is the G-buffer's camera; ``roughness`` (H, W) the G-buffer's
-    blended roughness, or None for the sharp lookup; ``fresnel`` as ``deferred_shade``'s.
+    blended roughness, or None for the sharp lookup; ``fresnel_f0`` the scene's F0 for the
+    Fresnel rise (``core.render.fresnel``), None without it.
     No autograd graph is built.
     """
     dtype = base.dtype
@@ -236,7 +236,7 @@ def shade_compiled(
         arr(base), arr(normal), arr(w_r), arr(alpha),
         None if roughness is None else arr(roughness), arr(bg), rot, intr, arr(packed),
         np.array(offsets, np.int64), np.array(sizes, np.int64), scale, min_major,
-        bool(fresnel), final, specular, refl,
+        -1.0 if fresnel_f0 is None else float(fresnel_f0), final, specular, refl,
     )  # fmt: skip
     run_ranges(_shade_rows, h, args)
     return torch.from_numpy(final), torch.from_numpy(specular), torch.from_numpy(refl)

@@ -293,7 +293,9 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, Adam]:
         opts: dict[str, Adam] = dict(make_optimizers(self.gaussians, self.cfg, self.radius))
         if self.envmap is not None:
-            opts["envmap"] = Adam(self.envmap.parameters(), lr=self.cfg.lr.envmap)
+            opts["envmap"] = Adam([self.envmap.log_radiance], lr=self.cfg.lr.envmap)
+            # its own optimiser: checkpoints from before it (no such state) resume as is
+            opts["fresnel"] = Adam([self.envmap.fresnel_logit], lr=self.cfg.lr.envmap)
         return opts
 
     @property
