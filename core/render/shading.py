@@ -34,6 +34,7 @@ from core.kernels.dispatch import cpu_float
 from core.render.envmap import EnvMap
 from core.render.envmap_mips import lod_range, mip_sizes, roughness_to_lod, sample_cube_lod
 from core.render.fresnel import apply_fresnel
+from core.render.fresnel_compiled import fresnel_compiled
 from core.render.gbuffer import GBuffer
 from core.render.reflection_compiled import reflection_and_lod
 from core.render.shading_compiled import can_shade_compiled, shade_compiled
@@ -111,7 +112,8 @@ def deferred_shade(
     On the CPU, when no gradient is wanted (viewer frames, evaluation renders), the
     compiled kernel of ``core.render.shading_compiled`` shades the frame in one pass;
     with gradients (training) the reflected directions and LOD come from
-    ``core.render.reflection_compiled``; ``compiled=False`` keeps the PyTorch path, the
+    ``core.render.reflection_compiled`` and the Fresnel rise from
+    ``core.render.fresnel_compiled``; ``compiled=False`` keeps the PyTorch path, the
     reference both are tested against.
 
     ``fresnel``: the reflection rises toward grazing angles and takes its light from
@@ -158,9 +160,14 @@ def deferred_shade(
     shown_base, shown_w_r = base, w_r
     if fresnel:
         with stage("fresnel"):
-            rho = 0.0 if rough is None else pixel_roughness(rough, alpha)
-            shown_base, shown_w_r = apply_fresnel(
-                base, gbuffer.normal, w_r, rho, envmap.fresnel_f0, cam
-            )
+            f0 = envmap.fresnel_f0
+            both = (base, gbuffer.normal, w_r, alpha) + (() if rough is None else (rough,))
+            if compiled and cpu_float(*both) and len({t.dtype for t in both}) == 1:
+                shown_base, shown_w_r = fresnel_compiled(
+                    base, gbuffer.normal, w_r, rough, alpha, f0, cam
+                )
+            else:
+                rho = 0.0 if rough is None else pixel_roughness(rough, alpha)
+                shown_base, shown_w_r = apply_fresnel(base, gbuffer.normal, w_r, rho, f0, cam)
     specular = shown_w_r.unsqueeze(-1) * radiance
     return ShadeResult(shown_base + specular + fill, base, specular, w_r, refl)
