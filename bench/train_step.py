@@ -17,7 +17,7 @@ All cases run in one process on the same Gaussians, side by side:
   scale, single-view and multi-view losses (a second, depth-only G-buffer for the
   neighbour, at the pixels the multi-view loss reads), backward and Adam; and the
   same step without L_multi, as the scene plan runs a capture whose every view is
-  masked.
+  masked (``--compare-fresnel`` times that one without Fresnel beside it).
 
 Targets (issue 5, on an H100, where ``auto`` is centre order): full step ≤ 1.3 × plain
 step; deferred ≥ 200 FPS. On CPU the full step composites in plane order, which gathers
@@ -153,11 +153,13 @@ def run(args: argparse.Namespace) -> dict:
             gb, _ = render_gbuffer(gs, cam, sh_degree=3, backend=backend, antialiased=aa)
             deferred_shade(gb, env, white, fresnel=cfg.ablation.fresnel)
 
-    def full_step(multi_view: bool = True, order: str = cfg.splat_order) -> None:
+    def full_step(
+        multi_view: bool = True, order: str = cfg.splat_order, fresnel: bool = cfg.ablation.fresnel
+    ) -> None:
         gb, _ = render_gbuffer(
             gs, cam, sh_degree=3, backend=backend, antialiased=aa, splat_order=order
         )
-        shade = deferred_shade(gb, env, white, fresnel=cfg.ablation.fresnel)
+        shade = deferred_shade(gb, env, white, fresnel=fresnel)
         loss = rgb_loss(shade.final, target, 0.8) + 100.0 * scale_loss(gs.scales)
         depth, valid = geometry_depth(gb, True)
         loss = loss + 0.2 * single_view_loss(gb.normal, depth, valid, cam)
@@ -188,6 +190,10 @@ def run(args: argparse.Namespace) -> dict:
     order_case = f"full step (multi-view phase), splat_order {args.compare_order}"
     if args.compare_order:  # TrainConfig.splat_order's cost, timed beside the default
         cases.append((order_case, lambda: full_step(order=args.compare_order)))
+    fresnel_case = f"{MASKED_STEP}, without Fresnel"
+    compare_fresnel = bool(getattr(args, "compare_fresnel", False))
+    if compare_fresnel:  # Ablation.fresnel's cost, timed beside the default
+        cases.append((fresnel_case, lambda: full_step(multi_view=False, fresnel=False)))
     times = time_rounds(cases, args.warmup, args.repeat, device)
     rows = []
     for name, _ in cases:
@@ -202,6 +208,8 @@ def run(args: argparse.Namespace) -> dict:
             "compare_order": args.compare_order,
             "order_over_full_range": paired_ratio(times[order_case]["ms"], full),
         }
+    if compare_fresnel:
+        extra["masked_over_no_fresnel_range"] = paired_ratio(masked, times[fresnel_case]["ms"])
     return {
         **extra,
         "device": str(device),
@@ -280,6 +288,13 @@ def format_table(res: dict) -> str:
             f"full step with splat_order {res['compare_order']} / full step: "
             f"{o['median']:.2f}× [{o['min']:.2f}–{o['max']:.2f}]",
         ]
+    if "masked_over_no_fresnel_range" in res:
+        o = res["masked_over_no_fresnel_range"]
+        lines += [
+            "",
+            f"masked full step / the same without Fresnel: {o['median']:.3f}× "
+            f"[{o['min']:.3f}–{o['max']:.3f}]",
+        ]
     return "\n".join(lines)
 
 
@@ -311,6 +326,11 @@ def main(argv: list[str] | None = None) -> None:
         choices=["centre", "slab", "plane"],
         help="also time the full step with this TrainConfig.splat_order, beside the default "
         "('auto': plane order on the cpu backend, centre order on cuda)",
+    )
+    ap.add_argument(
+        "--compare-fresnel",
+        action="store_true",
+        help="also time the masked full step without Fresnel (Ablation.fresnel), beside it",
     )
     ap.add_argument("--json", help="also write the results here")
     args = ap.parse_args(argv)

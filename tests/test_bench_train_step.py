@@ -15,6 +15,7 @@ from bench.train_step import MASKED_STEP, format_table, neighbour_camera, paired
 def test_train_step_bench_runs_on_cpu(no_roughness: bool, compare: str | None):
     args = argparse.Namespace(
         compare_order=compare,
+        compare_fresnel=compare is not None,
         no_roughness=no_roughness,
         device="cpu",
         backend="cpu",
@@ -30,10 +31,12 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool, compare: str | None):
     names = [r["case"] for r in res["rows"]]
     assert names[0] == "plain render"
     order_case = ["full step (multi-view phase), splat_order centre"] if compare else []
-    assert names[-2 - len(order_case) :] == [
+    fresnel_case = [f"{MASKED_STEP}, without Fresnel"] if compare else []
+    assert names[-2 - len(order_case) - len(fresnel_case) :] == [
         "full step (multi-view phase)",
         MASKED_STEP,
         *order_case,
+        *fresnel_case,
     ]
     assert all(r["ms"] > 0 and math.isfinite(r["ms"]) for r in res["rows"])
     assert res["full_over_plain_step"] > 0 and res["deferred_fps"] > 0
@@ -48,6 +51,9 @@ def test_train_step_bench_runs_on_cpu(no_roughness: bool, compare: str | None):
         r = res["order_over_full_range"]
         assert 0 < r["min"] <= r["median"] <= r["max"]
         assert "full step with splat_order centre / full step" in format_table(res)
+        r = res["masked_over_no_fresnel_range"]  # Fresnel's cost, round by round
+        assert 0 < r["min"] <= r["median"] <= r["max"]
+        assert "without Fresnel" in format_table(res)
 
 
 def test_neighbour_camera_keeps_the_target_in_view():
