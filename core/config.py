@@ -219,9 +219,10 @@ class Ablation(_Strict):
     fresnel: bool = Field(
         True,
         description="False: w_r is the same from every angle (the paper's Eq. 9); True: "
-        "the reflection rises towards grazing angles (Schlick's Fresnel, lowered for rough "
-        "surfaces) and takes its light from the base colour, so bright rims need no bent "
-        "normals (core/render/fresnel.py)",
+        "the reflection rises towards grazing angles (Schlick's Fresnel from a head-on "
+        "reflectance the scene learns with its env map, lowered for rough surfaces) and "
+        "takes its light from the base colour, so bright rims need no bent normals "
+        "(core/render/fresnel.py)",
     )
     mask_coverage: bool = Field(
         True,
