@@ -32,7 +32,7 @@ from core.kernels.pool import run_ranges
 from core.render.reflection_compiled import COVERED, EPS, _normalise_back, _normalised
 from core.scene.cameras import Camera
 
-__all__ = ["fresnel_compiled"]
+__all__ = ["fresnel_compiled", "fresnel_rise"]
 
 
 @njit(nogil=True, cache=True, inline="always")
@@ -65,6 +65,14 @@ def _rho(j, i, rough, alpha):  # pragma: no cover - numba
     return (min(max(r, 0.0), 1.0) if r == r else r), False  # NaN stays NaN
 
 
+@njit(nogil=True, cache=True, inline="always")
+def fresnel_rise(cos, rho):  # pragma: no cover - numba
+    """(1 − ρ)(1 − c)⁵: ``core.render.fresnel.fresnel_rise`` for one pixel (this pass and
+    the frame kernel of ``shading_compiled`` read it)."""
+    s = 1.0 - cos
+    return (1.0 - rho) * (s * s) * (s * s) * s
+
+
 @njit(nogil=True, cache=True)
 def _forward_rows(
     lo, hi, base, normal, w_r, rough, alpha, intr, q, out_base, out_w
@@ -76,9 +84,7 @@ def _forward_rows(
             empty = normal[j, i, 0] == 0.0 and normal[j, i, 1] == 0.0 and normal[j, i, 2] == 0.0
             dot = 0.0 if empty else _angle(j, i, normal, intr)[6]
             c = min(abs(dot), 1.0)
-            rho = _rho(j, i, rough, alpha)[0]
-            s = 1.0 - c
-            rise = (1.0 - rho) * (s * s) * (s * s) * s
+            rise = fresnel_rise(c, _rho(j, i, rough, alpha)[0])
             keep = 1.0 - rise
             for ch in range(base.shape[2]):
                 out_base[j, i, ch] = base[j, i, ch] * keep

@@ -37,6 +37,7 @@ from core.kernels.pool import run_ranges
 from core.render.envmap import EnvMap
 from core.render.envmap_mips import lod_scale
 from core.render.envmap_pack_compiled import packed_cube_levels
+from core.render.fresnel_compiled import fresnel_rise
 
 __all__ = ["can_shade_compiled", "shade_compiled"]
 
@@ -128,15 +129,14 @@ def _shade_rows(
             fill = 1.0 - alpha[j, i]
             big = max(abs(dx), abs(dy), abs(dz))
             w = np.float64(w_r[j, i])
+            rho = 0.0  # pixel_roughness: read by Fresnel's rise and the LOD alike
+            if rough is not None:  # pruned at compile time for a None roughness
+                a = np.float64(alpha[j, i])
+                rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
+                rho = min(rho, 1.0) if rho > 0.0 else 0.0  # NaN reads as a mirror
             keep = 1.0  # the share of the base colour the reflection leaves (Fresnel)
             if fresnel_f0 > 0.0:  # core.render.fresnel.apply_fresnel, per pixel
-                rho = 0.0
-                if rough is not None:
-                    a = np.float64(alpha[j, i])
-                    rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
-                    rho = min(rho, 1.0) if rho > 0.0 else 0.0
-                s = 1.0 - cos
-                rise = (1.0 - rho) * (s * s) * (s * s) * s
+                rise = fresnel_rise(cos, rho)
                 keep = 1.0 - rise
                 w = w * (1.0 + (1.0 - fresnel_f0) / fresnel_f0 * rise)
             # w_r = 0 (background, diffuse surfaces) makes the specular term exactly 0:
@@ -147,10 +147,7 @@ def _shade_rows(
                 frac = 0.0
                 t10, gxw, gyw, q = 0, 0.0, 0.0, 0
                 if rough is not None:  # pruned at compile time for a None roughness
-                    # pixel_roughness, roughness_to_lod and sample_cube_lod's LOD split.
-                    a = np.float64(alpha[j, i])
-                    rho = np.float64(rough[j, i]) / a if a > 1e-6 else 0.0
-                    rho = min(rho, 1.0) if rho > 0.0 else 0.0  # NaN reads as a mirror
+                    # roughness_to_lod and sample_cube_lod's LOD split of the pixel's ρ
                     xl = rho * rho * lod_scale
                     lod = min(0.5 * math.log2(1.0 + xl * xl), top_lod)
                     level = min(math.floor(lod), lo_max)  # lod >= 0

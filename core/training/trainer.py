@@ -116,6 +116,11 @@ def check_runnable(cfg: TrainConfig) -> torch.device:
     return device
 
 
+# the env map's optimisers (its texels, the scene's Fresnel F0): stepped only while the
+# phase shades with the map, and dropped with it when the plan decides against one
+ENVMAP_OPTIMIZERS = ("envmap", "fresnel")
+
+
 def forward_view(
     gaussians: Gaussians,
     envmap: EnvMap | None,
@@ -293,9 +298,10 @@ class Trainer:
     def _make_optimizers(self) -> dict[str, Adam]:
         opts: dict[str, Adam] = dict(make_optimizers(self.gaussians, self.cfg, self.radius))
         if self.envmap is not None:
-            opts["envmap"] = Adam([self.envmap.log_radiance], lr=self.cfg.lr.envmap)
+            envmap_key, fresnel_key = ENVMAP_OPTIMIZERS
+            opts[envmap_key] = Adam([self.envmap.log_radiance], lr=self.cfg.lr.envmap)
             # its own optimiser: checkpoints from before it (no such state) resume as is
-            opts["fresnel"] = Adam([self.envmap.fresnel_logit], lr=self.cfg.lr.envmap)
+            opts[fresnel_key] = Adam([self.envmap.fresnel_logit], lr=self.cfg.lr.envmap)
         return opts
 
     @property
@@ -544,11 +550,13 @@ class Trainer:
                 o.zero_grad(set_to_none=True)
             self.iteration += 1
             return {"skipped": 1.0}
-        if not phase.envmap and "envmap" in self.optimizers:
-            self.optimizers["envmap"].zero_grad(set_to_none=True)
+        if not phase.envmap:
+            for k in ENVMAP_OPTIMIZERS:
+                if k in self.optimizers:
+                    self.optimizers[k].zero_grad(set_to_none=True)
         with stage("optimizer"):
             for k, o in self.optimizers.items():
-                if k == "envmap" and not phase.envmap:
+                if k in ENVMAP_OPTIMIZERS and not phase.envmap:
                     continue
                 o.step()
         with stage("densify"):
@@ -688,7 +696,8 @@ class Trainer:
             decide_envmap(self.plan, evidence, self.cfg)
             if not self.plan.envmap.value:
                 self.envmap = None
-                self.optimizers.pop("envmap", None)
+                for k in ENVMAP_OPTIMIZERS:
+                    self.optimizers.pop(k, None)
             if not self.plan.roughness_possible(self.cfg):  # nothing to blur: costs nothing
                 drop_roughness_state(self.gaussians)
                 self.optimizers.pop(ROUGH_KEY, None)
