@@ -44,7 +44,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # and narrow gaps, in a metal the dev set has not got, under a turned light.
     "trefoil_aluminium": {
         "shape": "trefoil",
-        "bsdf": {"type": "roughconductor", "material": "Al", "alpha": 0.08},
+        "material": {"type": "roughconductor", "material": "Al", "alpha": 0.08},
         "envmap": "forest",
         "envmap_turn_deg": 150.0,
     },
@@ -52,7 +52,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # in a coloured coated plastic under a light the dev plastics were not lit by.
     "vase_blue_plastic": {
         "shape": "vase",
-        "bsdf": {
+        "material": {
             "type": "roughplastic",
             "diffuse_reflectance": {"type": "rgb", "value": [0.08, 0.2, 0.55]},
             "alpha": 0.12,
@@ -64,7 +64,7 @@ PRESETS: dict[str, dict[str, Any]] = {
     # A rougher metal than any dev scene (GGX α 0.25: the reflection nearly a blur).
     "trefoil_rough_gold": {
         "shape": "trefoil",
-        "bsdf": {"type": "roughconductor", "material": "Au", "alpha": 0.25},
+        "material": {"type": "roughconductor", "material": "Au", "alpha": 0.25},
         "envmap": "studio",
         "envmap_turn_deg": 60.0,
     },
@@ -355,13 +355,13 @@ def render_scene(
     # linear values at scale 1), per pixel on its brightest channel so a coloured
     # object clips about as often as a grey one; from a cheap pass over every train
     # view (a sunlit diffuse side clips in the views that face it, most in none).
-    probe = Renderer(mesh_path, spec["bsdf"], out / "envmap.exr", 1.0, variant)
+    probe = Renderer(mesh_path, spec["material"], out / "envmap.exr", 1.0, variant)
     vals = []
     for c2w in train_cams:
         rgb, a = probe.image(c2w, size, 16, seed)
         vals.append(rgb[a > 0.99].max(axis=-1))
     scale = float(f"{1.0 / np.percentile(np.concatenate(vals), 90):.3g}")
-    renderer = Renderer(mesh_path, spec["bsdf"], out / "envmap.exr", scale, variant)
+    renderer = Renderer(mesh_path, spec["material"], out / "envmap.exr", scale, variant)
     frames: dict[str, list] = {"train": [], "test": []}
     train_depths = []
     clipped = []
@@ -424,7 +424,7 @@ def render_scene(
             "watertight": bool(mesh.is_watertight),
         },
         "normalization": {"matrix_4x4": matrix.tolist()},
-        "material": {"mitsuba_bsdf": {"type": "twosided", "bsdf": spec["bsdf"]}},
+        "material": {"mitsuba_bsdf": {"type": "twosided", "bsdf": spec["material"]}},
         "envmap": {
             "name": spec["envmap"],
             "source": str(src),

@@ -76,7 +76,7 @@ def test_every_preset_names_a_shape_and_a_dev_light() -> None:
     for spec in PRESETS.values():
         assert spec["shape"] in SHAPES
         assert spec["envmap"] in ("courtyard", "forest", "studio")
-        assert 0.0 < spec["bsdf"]["alpha"] <= 1.0
+        assert 0.0 < spec["material"]["alpha"] <= 1.0
 
 
 def test_seen_counts_the_visible_side_only() -> None:
