@@ -58,8 +58,11 @@ INDIRECT = ("fast-simplification", "httptools", "watchfiles")  # trimesh.simplif
 # 36 MiB; obstore: only bench/store_io.py compares it, skipped when absent)
 # Not carried either: the relightable asset's UV atlas (xatlas, imported only when an
 # asset is exported, which the kit does not do) and Blender's modules (bpy, mathutils:
-# bench/blender_render.py runs in its own venv, scripts/blender_venv.sh).
-OPTIONAL_MODULES = frozenset({"lpips", "pycolmap", "obstore", "xatlas", "bpy", "mathutils"})
+# bench/blender_render.py runs in its own venv, scripts/blender_venv.sh), nor Mitsuba
+# (bench/render_unseen.py renders held-out scenes on a development machine, not in the kit).
+OPTIONAL_MODULES = frozenset(
+    {"lpips", "pycolmap", "obstore", "xatlas", "bpy", "mathutils", "mitsuba"}
+)
 # provided with the CUDA torch, never carried
 TORCH_SIDE = re.compile(r"^(torch|triton|nvidia-.*|cuda-.*)$")
 # the target: CPython 3.12 on x86-64 Linux
