@@ -61,6 +61,19 @@ PRESETS: dict[str, dict[str, Any]] = {
         "envmap": "courtyard",
         "envmap_turn_deg": 90.0,
     },
+    # The same vase with a checker printed on (inside too): whether a well with texture
+    # to match across views comes out hollow where the plain one is lidded.
+    "vase_checker_plastic": {
+        "shape": "vase",
+        "material": {
+            "type": "roughplastic",
+            "checker": {"color0": [0.08, 0.2, 0.55], "color1": [0.85, 0.8, 0.7], "cells": [16, 8]},
+            "alpha": 0.12,
+            "int_ior": 1.49,
+        },
+        "envmap": "courtyard",
+        "envmap_turn_deg": 90.0,
+    },
     # A rougher metal than any dev scene (GGX α 0.25: the reflection nearly a blur).
     "trefoil_rough_gold": {
         "shape": "trefoil",
@@ -204,6 +217,29 @@ def pixel_rays(c2w: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
 # ------------------------------------------------------------------------- rendering
 
 
+def mitsuba_bsdf(mi: Any, material: dict) -> dict:
+    """The preset's material as a Mitsuba BSDF dict: a ``checker`` (two linear RGB
+    colours, cells along u and v) becomes its diffuse reflectance, read through the
+    mesh's cylindrical UVs (:func:`cylindrical_uv`)."""
+    out = {k: v for k, v in material.items() if k != "checker"}
+    checker = material.get("checker")
+    if checker is not None:
+        out["diffuse_reflectance"] = {
+            "type": "checkerboard",
+            "color0": {"type": "rgb", "value": checker["color0"]},
+            "color1": {"type": "rgb", "value": checker["color1"]},
+            "to_uv": mi.ScalarTransform4f().scale([*checker["cells"], 1]),
+        }
+    return out
+
+
+def cylindrical_uv(mesh: trimesh.Trimesh) -> np.ndarray:
+    """(u, v) per vertex: the angle about +Z over 2π and the height; a texture seam
+    where u wraps (one column of cells smeared, which no view is scored on)."""
+    v = mesh.vertices
+    return np.stack([(np.arctan2(v[:, 1], v[:, 0]) / (2 * math.pi)) % 1.0, (v[:, 2] + 1) / 2], 1)
+
+
 class Renderer:
     """One Mitsuba scene (mesh, material, env map), rendered from any camera."""
 
@@ -226,7 +262,7 @@ class Renderer:
                     "type": "ply",
                     "filename": str(mesh_path),
                     "face_normals": False,
-                    "bsdf": {"type": "twosided", "bsdf": dict(bsdf)},
+                    "bsdf": {"type": "twosided", "bsdf": mitsuba_bsdf(mi, bsdf)},
                 },
             }
         )
@@ -343,6 +379,8 @@ def render_scene(
     if not mesh.is_watertight:
         raise RuntimeError(f"{preset}: the {spec['shape']} mesh is not watertight")
     mesh_path = out / "gt_mesh.ply"
+    if "checker" in spec["material"]:
+        mesh.visual = trimesh.visual.TextureVisuals(uv=cylindrical_uv(mesh))
     mesh.export(mesh_path)
     # The light: a dev env map turned about +Z by whole columns (exact, no resampling).
     src = envmaps / ENVMAP_SOURCES[spec["envmap"]] / "envmap.exr"
