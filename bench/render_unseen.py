@@ -26,8 +26,9 @@ from typing import Any
 
 import numpy as np
 import trimesh
-from scipy.spatial import cKDTree
 
+from core.evaluation.metrics import chamfer_distance
+from core.scene.groundtruth import write_gt_points
 from core.scene.imageio import read_image_array, write_image
 
 CAMERA_ANGLE_X = 0.6911112070083618  # the dev data's (Blender's 50 mm on 36 mm)
@@ -98,15 +99,14 @@ def _closed_tube(curve: np.ndarray, radius: float, sides: int) -> trimesh.Trimes
     if np.linalg.norm(seed) < 1e-3:
         seed = np.cross(tangent[0], [1.0, 0.0, 0.0])
     normal[0] = seed / np.linalg.norm(seed)
-    for i in range(1, n + 1):  # transport once round, back to the start
-        t_prev, t_cur = tangent[i - 1], tangent[i % n]
-        v = normal[i - 1] - np.dot(normal[i - 1], t_cur) * t_cur
-        v /= np.linalg.norm(v)
-        if i < n:
-            normal[i] = v
-        else:
-            closing = v
-    del t_prev
+
+    def transported(prev: np.ndarray, t: np.ndarray) -> np.ndarray:
+        v = prev - np.dot(prev, t) * t
+        return v / np.linalg.norm(v)
+
+    for i in range(1, n):
+        normal[i] = transported(normal[i - 1], tangent[i])
+    closing = transported(normal[n - 1], tangent[0])  # once round, back at the start
     binormal0 = np.cross(tangent[0], normal[0])
     mismatch = math.atan2(np.dot(closing, binormal0), np.dot(closing, normal[0]))
     ring = np.linspace(0.0, 2.0 * math.pi, sides, endpoint=False)
@@ -184,6 +184,11 @@ def normalize(mesh: trimesh.Trimesh) -> tuple[trimesh.Trimesh, np.ndarray]:
 # --------------------------------------------------------------------------- cameras
 
 
+def focal_px(size: int) -> float:
+    """Focal length in pixels of a ``size``-pixel-wide dev-data image."""
+    return 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+
+
 def fibonacci_cameras(n: int, phase: float) -> list[np.ndarray]:
     """Camera-to-world (OpenGL: looks down −Z, +Y up) on the dev data's Fibonacci sphere."""
     out = []
@@ -205,7 +210,7 @@ def fibonacci_cameras(n: int, phase: float) -> list[np.ndarray]:
 def pixel_rays(c2w: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
     """World origins and unnormalised directions through pixel centres, z-component −1
     in the camera frame (so the hit distance along them is the z-depth)."""
-    f = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+    f = focal_px(size)
     j, i = np.meshgrid(np.arange(size), np.arange(size), indexing="ij")
     cam = np.stack(
         [(i + 0.5 - size / 2) / f, -(j + 0.5 - size / 2) / f, -np.ones_like(i, float)], -1
@@ -314,7 +319,6 @@ class Renderer:
             valid = np.asarray(si.is_valid(), dtype=bool)
             t = np.asarray(si.t, dtype=np.float64)
             n = np.stack([np.asarray(c, dtype=np.float64) for c in si.sh_frame.n], 1)
-        t = np.where(valid, t, 0.0)
         depth = np.where(valid, t / length, 0.0)
         n = np.where((np.sum(n * u, 1) > 0)[:, None], -n, n)
         n = np.where(valid[:, None], n, 0.0)
@@ -322,16 +326,6 @@ class Renderer:
 
 
 # ----------------------------------------------------------------------------- files
-
-
-def _write_points(path: Path, pts: np.ndarray, nrm: np.ndarray) -> None:
-    from plyfile import PlyData, PlyElement
-
-    data = np.empty(len(pts), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
-    for i, k in enumerate("xyz"):
-        data[k] = pts[:, i]
-        data["n" + k] = nrm[:, i]
-    PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(str(path))
 
 
 def surface_points(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -345,14 +339,15 @@ def surface_points(mesh: trimesh.Trimesh, n: int, seed: int) -> tuple[np.ndarray
 
 
 def chamfer_x100(a: np.ndarray, b: np.ndarray) -> float:
-    return 100.0 * 0.5 * (cKDTree(b).query(a)[0].mean() + cKDTree(a).query(b)[0].mean())
+    """The evaluation's Chamfer distance ×10² (nothing dropped: both sets are surfaces)."""
+    return float(chamfer_distance(a, b, max_radius=None)["cd_x100"])
 
 
 def seen_by(
     points: np.ndarray, cams: list[np.ndarray], depths: list[np.ndarray], size: int
 ) -> np.ndarray:
     """Points within a pixel footprint of the first surface some train view sees."""
-    f = 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
+    f = focal_px(size)
     seen = np.zeros(len(points), bool)
     for c2w, depth in zip(cams, depths, strict=True):
         w2c = np.linalg.inv(c2w)
@@ -428,7 +423,7 @@ def render_scene(
             json.dumps({"camera_angle_x": CAMERA_ANGLE_X, "frames": frames[split]}, indent=1)
         )
     pts, nrm = surface_points(mesh, 200_000, seed)
-    _write_points(out / "gt_points.ply", pts, nrm)
+    write_gt_points(out / "gt_points.ply", pts, nrm)
     np.save(out / "gt_points_seen.npy", seen_by(pts, train_cams, train_depths, size))
     floors = {
         "pred_200k_points": round(chamfer_x100(surface_points(mesh, 200_000, seed + 1)[0], pts), 3),

@@ -9,6 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -55,3 +56,16 @@ def load_ground_truth(root: Path | None, view: View) -> GroundTruth | None:
         normal = F.interpolate(normal.permute(2, 0, 1)[None], size=(H, W), mode="nearest")[0]
         normal = normal.permute(1, 2, 0)
     return GroundTruth(depth, normal)
+
+
+def write_gt_points(path: str | Path, points: np.ndarray, normals: np.ndarray) -> Path:
+    """``gt_points.ply`` as the dev data ships it: binary little-endian float
+    ``x y z nx ny nz`` (what ``core.evaluation.geometry.load_gt_points`` reads)."""
+    from plyfile import PlyData, PlyElement
+
+    data = np.empty(len(points), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
+    for i, k in enumerate("xyz"):
+        data[k] = points[:, i]
+        data["n" + k] = normals[:, i]
+    PlyData([PlyElement.describe(data, "vertex")], byte_order="<").write(str(path))
+    return Path(path)

@@ -345,10 +345,8 @@ def write_envmap_latlong(env: EnvFn, path: str | Path, height: int = 128) -> Pat
 
 def write_ground_truth(scene: Scene, out_dir: str | Path, shape: str, n_points: int) -> None:
     """GT depth/normal maps of every view and GT surface points, in the dev-scene layout."""
-    import numpy as np
-    from plyfile import PlyData, PlyElement
-
     from core.scene.formats.writers import _unique_names
+    from core.scene.groundtruth import write_gt_points
     from core.scene.imageio import write_image
 
     out = Path(out_dir)
@@ -361,8 +359,4 @@ def write_ground_truth(scene: Scene, out_dir: str | Path, shape: str, n_points: 
             write_image(folder / f"{name}_depth.exr", depth, encode_srgb=False)
             write_image(folder / f"{name}_normal.exr", r.normal, encode_srgb=False)
     pts, nrm = surface_points(shape, n_points)
-    data = np.empty(len(pts), dtype=[(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")])
-    for i, k in enumerate("xyz"):
-        data[k] = pts[:, i].numpy()
-        data["n" + k] = nrm[:, i].numpy()
-    PlyData([PlyElement.describe(data, "vertex")]).write(str(out / "gt_points.ply"))
+    write_gt_points(out / "gt_points.ply", pts.numpy(), nrm.numpy())
