@@ -336,6 +336,17 @@ class TrainConfig(_Strict):
         description="points of the first model when the scene has no cloud (inside the "
         "masks' visual hull, else random in the bounds)",
     )
+    # Off by default: 0.3 took rocker_gold_256's CD×10² from 1.05 to 0.71 and the
+    # validation fandisk's from 1.18 to 1.01, and teapot_gold's from 0.42 to 0.92 (its
+    # flat, dark, textureless bottom came out hollow); docs/benchmarks.md, 2026-11-29
+    init_volume_fraction: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="share of the visual-hull init points placed inside the hull (on "
+        "random samples of their rays) instead of on its surface; helps objects with "
+        "deep concavities, hurts flat textureless faces",
+    )
     init_opacity: float = Field(0.1, gt=0, lt=1)
     init_refl: float = Field(0.05, ge=0, lt=1)
     init_roughness: float = Field(

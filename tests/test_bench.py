@@ -193,6 +193,9 @@ def test_config_names_and_overrides() -> None:
     assert bench_config("sh_only", 300, 0.5).plan_overrides == {}
     mine = bench_config("full", 300, 0.5, {"plan_overrides": {"envmap": False}})
     assert mine.plan_overrides == {"envmap": False}
+    # the volume-init row starts 30% inside the hull; the full model starts on it
+    assert bench_config("volume_init", 300, 0.5).init_volume_fraction == 0.3
+    assert bench_config("full", 300, 0.5).init_volume_fraction == 0.0
 
 
 def test_table_marks_the_best_value_per_column() -> None:

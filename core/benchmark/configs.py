@@ -30,6 +30,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "sil_middle": {"silhouette_touching": False},
     "no_mask_loss": {"mask_coverage": False},
     "centre_order": {},
+    "volume_init": {},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -69,6 +70,8 @@ LABELS = {
     "sil_middle": "silhouette term at each hull chord's middle (not where the ray touches)",
     "no_mask_loss": "w/o the halo term (coverage fitted through the colours only)",
     "centre_order": "w/o plane order (each tile's splats in centre-depth order, as 3DGS)",
+    "volume_init": "with 30% of the init points inside the visual hull (init_volume_fraction; "
+    "the full model starts all on its surface)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, Fresnel, same-surface depth normals, facing-only depth losses, the "
     "halo term, plane order)",
@@ -77,6 +80,7 @@ LABELS = {
 # name -> top-level settings a configuration changes besides its ablation switches
 SETTINGS: dict[str, dict[str, Any]] = {
     "centre_order": {"splat_order": "centre"},
+    "volume_init": {"init_volume_fraction": 0.3},
     "paper": {"splat_order": "centre"},
     "sh_only": {"splat_order": "centre"},
 }
@@ -98,6 +102,7 @@ TABLE_ORDER = (
     "sil_middle",
     "no_mask_loss",
     "centre_order",
+    "volume_init",
     "paper",
     "full",
 )

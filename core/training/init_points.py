@@ -64,6 +64,23 @@ def bisect_hull_boundary(
     return inside
 
 
+def inside_sample(inside: Tensor, t: Tensor, fraction: float, gen: torch.Generator) -> Tensor:
+    """(M,) a ray parameter drawn among each ray's inside samples for a ``fraction`` of
+    the rays (uniform over them, jittered by up to half a step either way), NaN for the
+    rest. ``inside``, ``t``: (M, S) the march's inside flags and parameters."""
+    m = inside.shape[0]
+    out = torch.full((m,), float("nan"), dtype=torch.float64)
+    if fraction <= 0.0 or m == 0:
+        return out
+    chosen = torch.rand(m, generator=gen, dtype=torch.float64) < fraction
+    score = torch.rand(inside.shape, generator=gen, dtype=torch.float64) * inside
+    k = score.argmax(1)
+    step = (t[:, -1] - t[:, 0]) / max(1, t.shape[1] - 1)
+    jitter = (torch.rand(m, generator=gen, dtype=torch.float64) - 0.5) * step
+    tk = t.gather(1, k[:, None])[:, 0] + jitter
+    return torch.where(chosen & inside.any(1), tk, out)
+
+
 @torch.no_grad()
 def visual_hull_points(
     scene: Scene,
@@ -73,8 +90,10 @@ def visual_hull_points(
     min_fraction: float = 0.9,
     bisections: int = 8,
     seed: int = 0,
+    volume_fraction: float = 0.0,
 ) -> tuple[Tensor, Tensor] | None:
-    """Up to ``n`` points (float64) with linear colours on the visual-hull surface.
+    """Up to ``n`` points (float64) with linear colours on the visual-hull surface, and a
+    ``volume_fraction`` of them inside it.
 
     Each ray is marched in ``samples_per_ray`` steps through the bounding sphere, and
     its entry into the hull is then located by ``bisections`` halvings of the step it
@@ -82,14 +101,25 @@ def visual_hull_points(
     half a step on average; on the dev scenes that started every point ~0.03 (1.3 px)
     inside the object, and training never moved the surface back out.
 
+    ``volume_fraction`` of the rays instead keep a random sample among their samples inside
+    the hull (jittered within its step, not bisected). Why: the masks cannot see into a
+    concavity, so the hull bridges it, and splats started on the bridge stay there (a
+    splat hardly moves along the rays that see it once it is opaque); started inside, some
+    lie on the concave surface. On rocker_gold_256 a third inside took the Chamfer
+    distance from 1.05 to 0.71 ×10², but splats started inside also surface where nothing
+    in the images pins the depth (teapot_gold's flat dark bottom: 0.42 → 0.92), so it is
+    off by default (docs/benchmarks.md, 2026-11-29).
+
     Returns None when the scene has no masks or no ray finds the hull.
     """
+    if not 0.0 <= volume_fraction <= 1.0:
+        raise ValueError(f"volume_fraction must be in [0, 1], got {volume_fraction}")
     views = [v for v in scene.train if v.mask is not None]
     if not views:
         return None
     gen = torch.Generator().manual_seed(seed)
     per_view = max(1, (2 * n) // len(views))
-    origins, dirs, t_out, t_in, cols = [], [], [], [], []
+    origins, dirs, t_out, t_in, cols, deep = [], [], [], [], [], []
     c, r = scene.center.to(torch.float64), float(scene.radius)
     for v in views:
         idx = (v.mask.reshape(-1) > 0.5).nonzero()[:, 0]
@@ -125,12 +155,15 @@ def visual_hull_points(
         t_in.append(t[rows, k])
         t_out.append(torch.where(k > 0, t[rows, (k - 1).clamp_min(0)], t[rows, k]))
         cols.append(v.image.reshape(-1, 3)[pick[sel]].double())
+        deep.append(inside_sample(inside[sel], t[sel], volume_fraction, gen))
     if not dirs:
         return None
     O, D = torch.cat(origins), torch.cat(dirs)
     t_hit = bisect_hull_boundary(
         O, D, torch.cat(t_out), torch.cat(t_in), scene, min_fraction, bisections
     )
+    t_deep = torch.cat(deep)
+    t_hit = torch.where(torch.isnan(t_deep), t_hit, t_deep)
     P = O + D * t_hit[:, None]
     C = torch.cat(cols)
     if P.shape[0] > n:

@@ -230,10 +230,19 @@ class Trainer:
         }
         hull = None
         if self.scene.points is None and self.scene.has_masks:
-            hull = visual_hull_points(self.scene, self.cfg.init_points, seed=self.cfg.seed)
+            hull = visual_hull_points(
+                self.scene,
+                self.cfg.init_points,
+                seed=self.cfg.seed,
+                volume_fraction=self.cfg.init_volume_fraction,
+            )
         if hull is not None:
             g = Gaussians.from_points(hull[0], hull[1], radius=self.radius, **kw)
-            self.plan.init = {"method": "visual hull of the masks", "points": g.num}
+            self.plan.init = {
+                "method": "visual hull of the masks",
+                "points": g.num,
+                "inside_fraction": self.cfg.init_volume_fraction,
+            }
         else:
             g = Gaussians.from_scene(
                 self.scene, n_random=self.cfg.init_points, seed=self.cfg.seed, **kw
