@@ -151,6 +151,18 @@ class Densification(_Strict):
         0.15, gt=0, le=10, description="prune when 2D radius > this × image"
     )
     max_gaussians: int = Field(300_000, ge=1, le=MAX_GAUSSIANS)
+    seed_behind: int = Field(
+        0,
+        ge=0,
+        le=MAX_GAUSSIANS,
+        description="at each opacity reset, splats proposed behind the rendered surface on "
+        "the worst-explained pixels' rays, inside the masks' hull (0: none)",
+    )
+    prune_hidden: bool = Field(
+        False,
+        description="at each opacity reset, remove the splats that lie behind the rendered "
+        "surface in every training view",
+    )
     absgrad: bool = Field(
         False,
         description="AbsGS: densify on the per-pixel absolute screen gradient (cuda backend "

@@ -289,6 +289,47 @@ class DensifyStrategy:
         self._zero(gaussians.num, device)
         return {"cloned": k_c, "split": k_s, "pruned": n_pruned}
 
+    def append(
+        self, gaussians: Gaussians, optimizers: dict[str, Adam], values: dict[str, Tensor]
+    ) -> int:
+        """Add the rows ``values`` (every key of ``gaussians.params``) after the existing
+        ones; their Adam moments start at zero. Returns how many were added."""
+        if set(values) != set(gaussians.params):
+            raise ValueError(
+                f"new rows have keys {sorted(values)}, the set has {sorted(gaussians.params)}"
+            )
+        n, k = gaussians.num, int(values["means"].shape[0])
+        if k == 0:
+            return 0
+        grown = {
+            key: torch.cat([p.detach(), values[key].to(p)]) for key, p in gaussians.params.items()
+        }
+        device = gaussians.device
+        src = torch.cat(
+            [torch.arange(n, device=device), torch.full((k,), -1, device=device, dtype=torch.long)]
+        )
+        self._apply(gaussians, optimizers, grown, src)
+        self._zero(gaussians.num, device)
+        return k
+
+    def remove(self, gaussians: Gaussians, optimizers: dict[str, Adam], drop: Tensor) -> int:
+        """Remove the rows where ``drop`` (N,) is True, keeping the others' Adam moments;
+        returns how many went (never all: a set with none left cannot train)."""
+        n = gaussians.num
+        if drop.shape != (n,):
+            raise ValueError(f"drop mask has shape {tuple(drop.shape)}, the set has {n} rows")
+        drop = drop.to(gaussians.device, torch.bool)
+        k = int(drop.sum())
+        if k == 0 or k == n:
+            return 0
+        keep_idx = (~drop).nonzero(as_tuple=True)[0]
+        p = gaussians.params
+        self._apply(
+            gaussians, optimizers, {key: t.detach()[keep_idx] for key, t in p.items()}, keep_idx
+        )
+        self._zero(gaussians.num, gaussians.device)
+        return k
+
     @staticmethod
     def _apply(
         gaussians: Gaussians,

@@ -37,8 +37,8 @@ from core.render.depth_geometry import facing_view
 from core.render.envmap import EnvMap
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
-from core.render.grazing import add_grazing_state
-from core.render.orientation import add_orientation_state, record_visibility
+from core.render.grazing import GRAZE_KEY, add_grazing_state
+from core.render.orientation import SEEN_DIR, add_orientation_state, record_visibility
 from core.render.raster import resolve_backend
 from core.render.roughness import ROUGH_KEY, add_roughness_state, drop_roughness_state
 from core.render.shading import ShadeResult, deferred_shade
@@ -47,7 +47,7 @@ from core.scene.views import Scene, View
 from core.stages import stage
 from core.training.adam import Adam
 from core.training.budget import TimeBudget
-from core.training.densify import DensifyStrategy
+from core.training.densify import RESET_OPACITY, DensifyStrategy
 from core.training.init_points import visual_hull_points
 from core.training.losses import (
     edge_weight,
@@ -66,6 +66,7 @@ from core.training.planner import (
     plan_scene,
     probe_view_dependence,
 )
+from core.training.seed_behind import hidden_everywhere, propose_behind, view_errors
 from core.training.silhouette import SilhouetteDepth, silhouette_points
 
 Event = dict[str, Any]
@@ -261,6 +262,42 @@ class Trainer:
         self.optimizers = self._make_optimizers()
         self._prepare_silhouette()
         self.plan.save(self.out / "plan.json")
+
+    def _after_reset(self, it: int, renders: list[tuple[Tensor, Tensor]]) -> dict[str, int]:
+        """Prune the splats hidden in every view and propose splats behind the surface
+        (``densify.prune_hidden``, ``densify.seed_behind``), from the train views
+        ``renders`` (view_errors) taken just before the reset."""
+        d, out = self.cfg.densify, {}
+        if d.prune_hidden:
+            depths = [depth for _, depth in renders]
+            hidden = hidden_everywhere(self.gaussians.params["means"], self.scene.train, depths)
+            out["hidden_pruned"] = self.strategy.remove(self.gaussians, self.optimizers, hidden)
+        if d.seed_behind > 0:
+            gen = torch.Generator().manual_seed(self.cfg.seed * 100_003 + it)
+            found = propose_behind(self.model, self.scene, d.seed_behind, gen, errors=renders)
+            out["seeded"] = 0 if found is None else self._add_splats(*found)
+        return out
+
+    def _add_splats(self, points: Tensor, colours: Tensor) -> int:
+        """Append Gaussians at ``points`` as the init makes them, at the opacity a reset
+        leaves (so they compete with the rest on equal terms); returns how many."""
+        g = Gaussians.from_points(
+            points,
+            colours,
+            radius=self.radius,
+            sh_degree=self.gaussians.sh_degree,
+            init_opacity=RESET_OPACITY,
+            init_refl=self.cfg.init_refl,
+        )
+        live = self.gaussians.params
+        if SEEN_DIR in live:
+            add_orientation_state(g)
+        if GRAZE_KEY in live:
+            add_grazing_state(g)
+        if ROUGH_KEY in live:
+            add_roughness_state(g, self.cfg.init_roughness)
+        values = {k: g.params[k].detach().to(self.device) for k in live}
+        return self.strategy.append(self.gaussians, self.optimizers, values)
 
     def _prepare_silhouette(self) -> None:
         """Find the silhouette points the plan asks for (again on resume: they are a
@@ -569,9 +606,16 @@ class Trainer:
                     continue
                 o.step()
         with stage("densify"):
+            d = self.cfg.densify
+            renders = None
+            if (d.seed_behind > 0 or d.prune_hidden) and self.strategy.is_reset_step(it):
+                # rendered before the reset makes every splat transparent
+                renders = view_errors(self.model, self.scene.train)
             stats = self.strategy.step_post_backward(
                 self.gaussians, self.optimizers, res, it, view.camera.width, view.camera.height
             )
+            if renders is not None and stats.get("reset"):
+                stats.update(self._after_reset(it, renders))
         self.iteration += 1
         out = dict(zip(terms, losses[:-1], strict=True))
         out["total"] = losses[-1]
