@@ -151,12 +151,13 @@ class Densification(_Strict):
         0.15, gt=0, le=10, description="prune when 2D radius > this × image"
     )
     max_gaussians: int = Field(300_000, ge=1, le=MAX_GAUSSIANS)
-    seed_behind: int = Field(
-        0,
+    seed_behind: float = Field(
+        0.0,
         ge=0,
-        le=MAX_GAUSSIANS,
+        le=1,
         description="at each opacity reset, splats proposed behind the rendered surface on "
-        "the worst-explained pixels' rays, inside the masks' hull (0: none)",
+        "the worst-explained pixels' rays, inside the masks' hull, as a share of the "
+        "Gaussians there are (0: none)",
     )
     prune_hidden: bool = Field(
         False,

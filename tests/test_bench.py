@@ -196,6 +196,10 @@ def test_config_names_and_overrides() -> None:
     # the volume-init row starts 30% inside the hull; the full model starts on it
     assert bench_config("volume_init", 300, 0.5).init_volume_fraction == 0.3
     assert bench_config("full", 300, 0.5).init_volume_fraction == 0.0
+    # a configuration's section settings merge into the base's section
+    seeded = bench_config("seed_behind", 300, 0.5, {"densify": {"max_gaussians": 900}})
+    assert seeded.densify.seed_behind == 0.25 and seeded.densify.max_gaussians == 900
+    assert bench_config("full", 300, 0.5).densify.seed_behind == 0.0
 
 
 def test_table_marks_the_best_value_per_column() -> None:

@@ -17,7 +17,7 @@ TINY = {
     "iterations": 120,
     "init_points": 300,
     "envmap_resolution": 8,
-    "densify": {"max_gaussians": 1500, "seed_behind": 80},
+    "densify": {"max_gaussians": 1500, "seed_behind": 0.2},
 }
 
 

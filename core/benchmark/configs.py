@@ -31,6 +31,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "no_mask_loss": {"mask_coverage": False},
     "centre_order": {},
     "volume_init": {},
+    "seed_behind": {},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -72,6 +73,8 @@ LABELS = {
     "centre_order": "w/o plane order (each tile's splats in centre-depth order, as 3DGS)",
     "volume_init": "with 30% of the init points inside the visual hull (init_volume_fraction; "
     "the full model starts all on its surface)",
+    "seed_behind": "with splats proposed behind the surface at each opacity reset "
+    "(densify.seed_behind 0.25; off in the full model)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, Fresnel, same-surface depth normals, facing-only depth losses, the "
     "halo term, plane order)",
@@ -81,6 +84,7 @@ LABELS = {
 SETTINGS: dict[str, dict[str, Any]] = {
     "centre_order": {"splat_order": "centre"},
     "volume_init": {"init_volume_fraction": 0.3},
+    "seed_behind": {"densify": {"seed_behind": 0.25}},
     "paper": {"splat_order": "centre"},
     "sh_only": {"splat_order": "centre"},
 }
@@ -103,6 +107,7 @@ TABLE_ORDER = (
     "no_mask_loss",
     "centre_order",
     "volume_init",
+    "seed_behind",
     "paper",
     "full",
 )
@@ -144,7 +149,11 @@ def bench_config(
         data["time_budget"] = float(time_budget)
     data["resolution_scale"] = float(resolution_scale)
     data.setdefault("ablation", {}).update(CONFIGS[name])
-    data.update(SETTINGS.get(name, {}))
+    for key, value in SETTINGS.get(name, {}).items():  # a section is merged, not replaced
+        if isinstance(value, dict):
+            data.setdefault(key, {}).update(value)
+        else:
+            data[key] = value
     if data["ablation"].get("deferred_shading", True):
         data.setdefault("plan_overrides", {}).setdefault("envmap", True)
     return config_from_dict(data, f"bench config {name}")

@@ -272,9 +272,10 @@ class Trainer:
             depths = [depth for _, depth in renders]
             hidden = hidden_everywhere(self.gaussians.params["means"], self.scene.train, depths)
             out["hidden_pruned"] = self.strategy.remove(self.gaussians, self.optimizers, hidden)
-        if d.seed_behind > 0:
+        if d.seed_behind > 0 and self.scene.has_masks:
             gen = torch.Generator().manual_seed(self.cfg.seed * 100_003 + it)
-            found = propose_behind(self.model, self.scene, d.seed_behind, gen, errors=renders)
+            n = round(d.seed_behind * self.gaussians.num)
+            found = propose_behind(self.model, self.scene, n, gen, errors=renders)
             out["seeded"] = 0 if found is None else self._add_splats(*found)
         return out
 
@@ -608,7 +609,8 @@ class Trainer:
         with stage("densify"):
             d = self.cfg.densify
             renders = None
-            if (d.seed_behind > 0 or d.prune_hidden) and self.strategy.is_reset_step(it):
+            seeds = d.seed_behind > 0 and self.scene.has_masks  # proposals need the hull
+            if (seeds or d.prune_hidden) and self.strategy.is_reset_step(it):
                 # rendered before the reset makes every splat transparent
                 renders = view_errors(self.model, self.scene.train)
             stats = self.strategy.step_post_backward(
