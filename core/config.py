@@ -349,9 +349,10 @@ class TrainConfig(_Strict):
         description="points of the first model when the scene has no cloud (inside the "
         "masks' visual hull, else random in the bounds)",
     )
-    # Off by default: 0.3 took rocker_gold_256's CD×10² from 1.05 to 0.71 and the
-    # validation fandisk's from 1.18 to 1.01, and teapot_gold's from 0.42 to 0.92 (its
-    # flat, dark, textureless bottom came out hollow); docs/benchmarks.md, 2026-11-29
+    # Off by default: 0.3 took rocker_gold_256's CD×10² from 1.05 to 0.76 and the
+    # validation fandisk's from 1.18 to 0.97, but teapot_gold's from 0.42 to 0.84 (its
+    # flat, dark, textureless bottom came out hollow) and the mirror sphere's from 0.44
+    # to 1.43; docs/benchmarks.md, 2026-11-29
     init_volume_fraction: float = Field(
         0.0,
         ge=0,

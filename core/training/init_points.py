@@ -105,10 +105,10 @@ def visual_hull_points(
     the hull (jittered within its step, not bisected). Why: the masks cannot see into a
     concavity, so the hull bridges it, and splats started on the bridge stay there (a
     splat hardly moves along the rays that see it once it is opaque); started inside, some
-    lie on the concave surface. On rocker_gold_256 a third inside took the Chamfer
-    distance from 1.05 to 0.71 ×10², but splats started inside also surface where nothing
-    in the images pins the depth (teapot_gold's flat dark bottom: 0.42 → 0.92), so it is
-    off by default (docs/benchmarks.md, 2026-11-29).
+    lie on the concave surface. On rocker_gold_256 0.3 took the Chamfer distance from
+    1.05 to 0.76 ×10², but splats started inside also surface where nothing in the images
+    pins the depth (teapot_gold's flat dark bottom: 0.42 → 0.84; the mirror sphere 0.44 →
+    1.43), so it is off by default (docs/benchmarks.md, 2026-11-29).
 
     Returns None when the scene has no masks or no ray finds the hull.
     """
