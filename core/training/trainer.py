@@ -263,6 +263,11 @@ class Trainer:
         self._prepare_silhouette()
         self.plan.save(self.out / "plan.json")
 
+    def _seeds_behind(self) -> bool:
+        """Whether resets propose splats behind the surface (the proposals need the hull,
+        so a scene without masks gets none)."""
+        return self.cfg.densify.seed_behind > 0 and self.scene.has_masks
+
     def _after_reset(self, it: int, renders: list[tuple[Tensor, Tensor]]) -> dict[str, int]:
         """Prune the splats hidden in every view and propose splats behind the surface
         (``densify.prune_hidden``, ``densify.seed_behind``), from the train views
@@ -272,7 +277,7 @@ class Trainer:
             depths = [depth for _, depth in renders]
             hidden = hidden_everywhere(self.gaussians.params["means"], self.scene.train, depths)
             out["hidden_pruned"] = self.strategy.remove(self.gaussians, self.optimizers, hidden)
-        if d.seed_behind > 0 and self.scene.has_masks:
+        if self._seeds_behind():
             gen = torch.Generator().manual_seed(self.cfg.seed * 100_003 + it)
             n = round(d.seed_behind * self.gaussians.num)
             found = propose_behind(self.model, self.scene, n, gen, errors=renders)
@@ -607,10 +612,10 @@ class Trainer:
                     continue
                 o.step()
         with stage("densify"):
-            d = self.cfg.densify
             renders = None
-            seeds = d.seed_behind > 0 and self.scene.has_masks  # proposals need the hull
-            if (seeds or d.prune_hidden) and self.strategy.is_reset_step(it):
+            if self.strategy.is_reset_step(it) and (
+                self.cfg.densify.prune_hidden or self._seeds_behind()
+            ):
                 # rendered before the reset makes every splat transparent
                 renders = view_errors(self.model, self.scene.train)
             stats = self.strategy.step_post_backward(
