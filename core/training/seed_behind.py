@@ -7,7 +7,8 @@ a bridge stands, the training views disagree with it (they see the concavity's w
 at different places), so its pixels keep a large error. At an opacity reset every
 splat is transparent again; splats proposed there along those pixels' rays, at random
 depths inside the hull behind the current surface, compete with the bridge on equal
-terms, and the multi-view photometric loss keeps the ones on the true surface. Pixels
+terms, and the colour loss over the many views that see them keeps the ones on the
+true surface (the plan drops L_multi on the masked captures these proposals need). Pixels
 the model explains well (a flat, dark, textureless face) get none, so a surface that
 nothing in the images contradicts stays where it is.
 """
