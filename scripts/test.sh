@@ -14,8 +14,10 @@ bash scripts/bootstrap.sh
 unset PYTHONDONTWRITEBYTECODE
 # numba kernels: compiled once into their cache before pytest, so the test workers and
 # the servers they start load them instead of each compiling the same kernels at once
-# (scripts/warm_kernels.py, ~30 s of CPU on a fresh clone). It runs while apt and npm
-# install the services and the browser below (mostly waiting on disk), not after them.
+# (scripts/warm_kernels.py: every signature a test run compiles, recorded in
+# scripts/kernel_signatures.tsv, in two processes; ~100 s on a fresh clone of a 2-core
+# VM without AVX-512). It runs while apt and npm install the services and the browser
+# below (mostly waiting on disk), not after them.
 warm_log=$(mktemp)
 python scripts/warm_kernels.py >"$warm_log" 2>&1 &
 warm_pid=$!

@@ -4,15 +4,18 @@ Every kernel is ``@njit(cache=True)``: the first process that calls one compiles
 (seconds each) and writes ``__pycache__/*.nbi``; later processes load it. On a fresh
 clone both pytest workers, and every server and worker process the tests start, would
 otherwise compile the same kernels at the same time, on the same two cores, inside
-tests that time out. A tiny training run through every phase, its outputs (mesh,
-renders) and one frame of every viewer channel reach them all.
+tests that time out.
 
-The float64 variants (the stability and parity tests render, shade and compare in
-float64: another signature of each kernel, ~25 s of compiling inside those tests) are
-compiled at the same time in a second process, on the core the first one leaves idle
-(numba compiles on one thread; its cache writes are atomic, so the two never clash).
+What to compile is the list a whole test run compiled (``scripts/kernel_signatures.tsv``,
+``core.kernels.signatures``: 127 signatures, float32 and float64, contiguous and strided),
+split into two shares of equal cost, one process per core (numba compiles on one thread;
+its cache writes are atomic, so the two never clash). Then, as catch-alls, a tiny training
+run through every phase with its outputs and one frame of every viewer channel, and the
+float64 paths: they load what the list held and compile what it lacks (a kernel added
+since). Without a list, the training run and the float64 paths run side by side instead.
 
     .venv/bin/python scripts/warm_kernels.py
+    .venv/bin/python scripts/warm_kernels.py --record   # after a test run: refresh the list
 """
 
 from __future__ import annotations
@@ -33,6 +36,8 @@ from core.model.frame import to_display
 from core.model.trained import CHECKPOINT_NAME, TrainedModel
 from core.scene.synthetic import make_scene
 from core.training.run import train_scene
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def float64_paths() -> None:
@@ -79,13 +84,20 @@ def float64_paths() -> None:
     ssim(img, torch.rand(size, size, 3, generator=gen, dtype=f64)).backward()
 
 
-def main() -> int:
-    t0 = time.perf_counter()
-    torch.set_num_threads(1)
-    if sys.argv[1:] == ["--float64"]:
-        float64_paths()
-        return 0
-    other = subprocess.Popen([sys.executable, __file__, "--float64"])
+def compile_part(part: int, parts: int) -> int:
+    """Compile one of ``parts`` equal shares of the recorded signatures."""
+    from core.kernels import signatures
+
+    share = signatures.balance(signatures.read(), parts)[part]
+    done, stale = signatures.compile_entries(share)
+    for msg in stale:
+        print(f"stale kernel signature (re-record with --record): {msg}")
+    return 0 if done or not share else 1
+
+
+def tiny_run() -> None:
+    """A tiny training run through every phase, its outputs and the viewer's frame: it
+    reaches any kernel the recorded list lacks (a new one, a changed one)."""
     scene = make_scene("sphere", "glossy", n_train=6, n_test=2, size=32, samples=1)
     cfg = TrainConfig(  # L_multi kept (a masked scene's plan drops it) and given neighbours
         iterations=60,
@@ -99,8 +111,40 @@ def main() -> int:
         frame = model.render(scene.train[0].camera, CHANNELS)  # the viewer's frame path
         for ch in CHANNELS:
             to_display(frame.image(ch))
-    if other.wait() != 0:
-        print("the float64 warm-up failed (its kernels compile in the tests instead)")
+
+
+def main() -> int:
+    t0 = time.perf_counter()
+    torch.set_num_threads(1)
+    args = sys.argv[1:]
+    if args == ["--float64"]:
+        float64_paths()
+        return 0
+    if args[:1] == ["--record"]:  # [--record [CHECKOUT]]: its caches, after a test run
+        from core.kernels import signatures
+
+        entries = signatures.record(Path(args[1]) if args[1:] else ROOT)
+        signatures.write(entries)
+        print(f"{len(entries)} kernel signatures recorded in {signatures.LIST}")
+        return 0
+    if len(args) == 2 and args[0] == "--part":
+        return compile_part(int(args[1]), 2)
+    from core.kernels import signatures
+
+    if signatures.read():
+        # the recorded signatures in two equal shares, one per core; then the catch-alls
+        # (everything they reach is loaded from the cache unless the list lacks it)
+        other = subprocess.Popen([sys.executable, __file__, "--part", "1"])
+        compile_part(0, 2)
+        if other.wait() != 0:
+            print("the second share of the recorded kernels failed to compile")
+        tiny_run()
+        float64_paths()
+    else:
+        other = subprocess.Popen([sys.executable, __file__, "--float64"])
+        tiny_run()
+        if other.wait() != 0:
+            print("the float64 warm-up failed (its kernels compile in the tests instead)")
     print(f"numba kernels compiled and cached in {time.perf_counter() - t0:.1f} s")
     return 0
 
