@@ -176,7 +176,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "admin (also create and revoke keys through the API); default admin",
     )
     _add_common(k)
-    k.set_defaults(func=_cmd_keys_create)
+    k.set_defaults(func=_cmd_keys_create, compute=False)  # no torch: see core.cli.main
 
     k = keys_sub.add_parser(
         "list",
@@ -187,7 +187,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     k.add_argument("owner", metavar="OWNER", nargs="?", help="only this owner's keys")
     k.add_argument("--all", action="store_true", help="revoked keys too")
     _add_common(k)
-    k.set_defaults(func=_cmd_keys_list)
+    k.set_defaults(func=_cmd_keys_list, compute=False)  # no torch: see core.cli.main
 
     k = keys_sub.add_parser(
         "revoke",
@@ -197,4 +197,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     k.add_argument("key_id", metavar="KEY_ID", help="the key's id (key_...)")
     _add_common(k)
-    k.set_defaults(func=_cmd_keys_revoke)
+    k.set_defaults(func=_cmd_keys_revoke, compute=False)  # no torch: see core.cli.main

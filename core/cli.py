@@ -622,12 +622,16 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 0
     try:
-        from core.kernels.threads import configure_cpu_threads
+        # the thread layout imports torch (~2.5 s of a process's start); a command that
+        # computes nothing (``compute=False`` in its parser's defaults: the key commands)
+        # skips it
+        if getattr(args, "compute", True):
+            from core.kernels.threads import configure_cpu_threads
 
-        try:
-            configure_cpu_threads()
-        except ValueError as exc:
-            raise GlintError(str(exc)) from None
+            try:
+                configure_cpu_threads()
+            except ValueError as exc:
+                raise GlintError(str(exc)) from None
         return int(args.func(args) or 0)
     except GlintError as exc:
         print(f"glint {args.command}: error: {exc}", file=sys.stderr)

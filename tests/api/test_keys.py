@@ -102,6 +102,22 @@ def test_cli_keys_create_and_serve(tmp_path: Path) -> None:
     assert (tmp_path / "store").is_dir()
 
 
+def test_key_commands_start_without_torch(tmp_path: Path) -> None:
+    """Creating, listing and revoking a key computes nothing, so it must not pay for
+    torch's import (the thread layout every computing command applies)."""
+    code = (
+        "import sys; from core.cli import main; "
+        "rcs = [main(['keys', 'create', 'owner-t']), main(['keys', 'list'])]; "
+        "print(rcs, 'torch' in sys.modules)"
+    )
+    env = {**os.environ, "PYTHONPATH": str(REPO), "GLINT_DATA_DIR": str(tmp_path)}
+    out = subprocess.run(
+        [sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip().splitlines()[-1] == "[0, 0] False", out.stdout
+
+
 def _problem(r: httpx.Response, status: int, slug: str) -> dict:
     assert r.status_code == status, r.text
     assert r.headers["content-type"] == "application/problem+json"
