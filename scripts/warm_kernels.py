@@ -15,7 +15,7 @@ float64 paths: they load what the list held and compile what it lacks (a kernel 
 since). Without a list, the training run and the float64 paths run side by side instead.
 
     .venv/bin/python scripts/warm_kernels.py
-    .venv/bin/python scripts/warm_kernels.py --record   # after a test run: refresh the list
+    .venv/bin/python scripts/warm_kernels.py --record [CHECKOUT]  # after a test run there
 """
 
 from __future__ import annotations
@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import torch
 
 from core.config import TrainConfig
+from core.kernels import signatures
 from core.model.channels import CHANNELS
 from core.model.frame import to_display
 from core.model.trained import CHECKPOINT_NAME, TrainedModel
@@ -86,8 +87,6 @@ def float64_paths() -> None:
 
 def compile_part(part: int, parts: int) -> int:
     """Compile one of ``parts`` equal shares of the recorded signatures."""
-    from core.kernels import signatures
-
     share = signatures.balance(signatures.read(), parts)[part]
     done, stale = signatures.compile_entries(share)
     for msg in stale:
@@ -121,16 +120,12 @@ def main() -> int:
         float64_paths()
         return 0
     if args[:1] == ["--record"]:  # [--record [CHECKOUT]]: its caches, after a test run
-        from core.kernels import signatures
-
         entries = signatures.record(Path(args[1]) if args[1:] else ROOT)
         signatures.write(entries)
         print(f"{len(entries)} kernel signatures recorded in {signatures.LIST}")
         return 0
     if len(args) == 2 and args[0] == "--part":
         return compile_part(int(args[1]), 2)
-    from core.kernels import signatures
-
     if signatures.read():
         # the recorded signatures in two equal shares, one per core; then the catch-alls
         # (everything they reach is loaded from the cache unless the list lacks it)
