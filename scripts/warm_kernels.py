@@ -85,9 +85,11 @@ def float64_paths() -> None:
     ssim(img, torch.rand(size, size, 3, generator=gen, dtype=f64)).backward()
 
 
-def compile_part(part: int, parts: int) -> int:
-    """Compile one of ``parts`` equal shares of the recorded signatures."""
-    share = signatures.balance(signatures.read(), parts)[part]
+def compile_part(part: int, parts: int, entries: list[signatures.Entry] | None = None) -> int:
+    """Compile one of ``parts`` equal shares of the recorded signatures (``entries``:
+    the list already read, else read here)."""
+    entries = signatures.read() if entries is None else entries
+    share = signatures.balance(entries, parts)[part]
     done, stale = signatures.compile_entries(share)
     for msg in stale:
         print(f"stale kernel signature (re-record with --record): {msg}")
@@ -126,11 +128,12 @@ def main() -> int:
         return 0
     if len(args) == 2 and args[0] == "--part":
         return compile_part(int(args[1]), 2)
-    if signatures.read():
+    entries = signatures.read()
+    if entries:
         # the recorded signatures in two equal shares, one per core; then the catch-alls
         # (everything they reach is loaded from the cache unless the list lacks it)
         other = subprocess.Popen([sys.executable, __file__, "--part", "1"])
-        compile_part(0, 2)
+        compile_part(0, 2, entries)
         if other.wait() != 0:
             print("the second share of the recorded kernels failed to compile")
         tiny_run()

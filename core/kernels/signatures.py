@@ -122,10 +122,14 @@ def argument_types(entry: Entry) -> tuple:
     return tuple(types)
 
 
+def _takes(disp, types: tuple) -> bool:
+    """Whether the kernel's Python function takes as many arguments as ``types``."""
+    return len(inspect.signature(disp.py_func).parameters) == len(types)
+
+
 def arity_matches(entry: Entry) -> bool:
     """Whether the kernel still takes as many arguments as the recorded signature."""
-    params = inspect.signature(dispatcher_of(entry).py_func).parameters
-    return len(params) == len(argument_types(entry))
+    return _takes(dispatcher_of(entry), argument_types(entry))
 
 
 def compile_entries(entries: list[Entry]) -> tuple[int, list[str]]:
@@ -134,10 +138,10 @@ def compile_entries(entries: list[Entry]) -> tuple[int, list[str]]:
     done, stale = 0, []
     for e in entries:
         try:
-            disp = dispatcher_of(e)
-            if not arity_matches(e):
+            disp, types = dispatcher_of(e), argument_types(e)
+            if not _takes(disp, types):
                 raise LookupError(f"{e.module}.{e.function}: the kernel's arguments changed")
-            disp.compile(argument_types(e))
+            disp.compile(types)
             done += 1
         except Exception as exc:
             stale.append(f"{e.module}.{e.function}{e.signature[:60]}...: {exc}".splitlines()[0])
