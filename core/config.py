@@ -73,6 +73,14 @@ class Phases(_Strict):
         description="iterations after each opacity reset without L_single and L_multi "
         "(every Gaussian is near-transparent, so the depth they constrain is undefined)",
     )
+    silhouette_until: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="fraction of the run that keeps the silhouette-point loss; it places the "
+        "surface on the outline early, and the last part of a run may settle the images "
+        "better without it (1.0: on to the end)",
+    )
 
     @model_validator(mode="after")
     def _ordered(self) -> Phases:

@@ -151,3 +151,15 @@ def test_geometry_losses_pause_after_each_reset():
     assert phase_at(cfg, 9101).multi_view and phase_at(cfg, 9101).single_view
     off = config_from_dict({"iterations": 30000, "phases": {"geometry_pause_after_reset": 0}})
     assert not any(geometry_paused(off, it) for it in range(30000))
+
+
+def test_the_silhouette_term_stops_at_its_fraction_of_the_run():
+    """phases.silhouette_until ends the silhouette loss; 1.0 keeps it to the last step."""
+    cfg = config_from_dict({"iterations": 3000, "phases": {"silhouette_until": 0.8}})
+    on = [it for it in range(3000) if phase_at(cfg, it).silhouette]
+    assert on and on[-1] == 2399 and phase_at(cfg, 2400).single_view
+    full = config_from_dict({"iterations": 3000})
+    assert phase_at(full, 2999).silhouette
+    assert not phase_at(full, 2999, silhouette_planned=False).silhouette
+    with pytest.raises(ConfigError, match="phases.silhouette_until"):
+        config_from_dict({"phases": {"silhouette_until": 0}})

@@ -131,7 +131,11 @@ def phase_at(
         planar_depth=ab.planar_depth,
         scale_loss=ab.planar,
         antialiased=cfg.antialiased,
-        silhouette=geo and ab.silhouette and silhouette_planned and not paused,
+        silhouette=geo
+        and ab.silhouette
+        and silhouette_planned
+        and not paused
+        and iteration < cfg.phases.silhouette_until * cfg.iterations,
         one_sided=ab.one_sided,
         grazing=ab.grazing_opacity,
         lowpass=cfg.lowpass_2d,
