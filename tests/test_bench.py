@@ -200,6 +200,10 @@ def test_config_names_and_overrides() -> None:
     seeded = bench_config("seed_behind", 300, 0.5, {"densify": {"max_gaussians": 900}})
     assert seeded.densify.seed_behind == 0.25 and seeded.densify.max_gaussians == 900
     assert bench_config("full", 300, 0.5).densify.seed_behind == 0.0
+    # the silhouette-stop row ends the term at 80% of the run; the base's phases merge in
+    stop = bench_config("sil_stop", 300, 0.5, {"phases": {"geometry_start": 2000}})
+    assert stop.phases.silhouette_until == 0.8 and stop.phases.geometry_start == 2000
+    assert bench_config("full", 300, 0.5).phases.silhouette_until == 1.0
 
 
 def test_table_marks_the_best_value_per_column() -> None:

@@ -32,6 +32,7 @@ CONFIGS: dict[str, dict[str, bool]] = {
     "centre_order": {},
     "volume_init": {},
     "seed_behind": {},
+    "sil_stop": {},
     "paper": {
         "silhouette": False,
         "one_sided": False,
@@ -75,6 +76,8 @@ LABELS = {
     "the full model starts all on its surface)",
     "seed_behind": "with splats proposed behind the surface at each opacity reset "
     "(densify.seed_behind 0.25; off in the full model)",
+    "sil_stop": "with the silhouette term off for the last 20% of the run "
+    "(phases.silhouette_until 0.8; the full model keeps it to the end)",
     "paper": "PGSR-DR as published (two-sided splats, mirror env-map lookups; w/o silhouette "
     "points, grazing opacity, Fresnel, same-surface depth normals, facing-only depth losses, the "
     "halo term, plane order)",
@@ -85,6 +88,7 @@ SETTINGS: dict[str, dict[str, Any]] = {
     "centre_order": {"splat_order": "centre"},
     "volume_init": {"init_volume_fraction": 0.3},
     "seed_behind": {"densify": {"seed_behind": 0.25}},
+    "sil_stop": {"phases": {"silhouette_until": 0.8}},
     "paper": {"splat_order": "centre"},
     "sh_only": {"splat_order": "centre"},
 }
@@ -108,6 +112,7 @@ TABLE_ORDER = (
     "centre_order",
     "volume_init",
     "seed_behind",
+    "sil_stop",
     "paper",
     "full",
 )
