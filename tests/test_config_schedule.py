@@ -161,5 +161,5 @@ def test_the_silhouette_term_stops_at_its_fraction_of_the_run():
     full = config_from_dict({"iterations": 3000})
     assert phase_at(full, 2999).silhouette
     assert not phase_at(full, 2999, silhouette_planned=False).silhouette
-    with pytest.raises(ConfigError, match="phases.silhouette_until"):
+    with pytest.raises(ConfigError, match=r"phases\.silhouette_until"):
         config_from_dict({"phases": {"silhouette_until": 0}})
