@@ -77,9 +77,9 @@ class Phases(_Strict):
         1.0,
         gt=0,
         le=1,
-        description="fraction of the run that keeps the silhouette-point loss; it places the "
-        "surface on the outline early, and the last part of a run may settle the images "
-        "better without it (1.0: on to the end)",
+        description="fraction of the run that keeps the silhouette-point loss (1.0: to the "
+        "end); ending it earlier (0.8) settles bulky objects' images better, but thin parts "
+        "and smooth mirrors shrink without it (docs/benchmarks.md, 2026-11-30)",
     )
 
     @model_validator(mode="after")
