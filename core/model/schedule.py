@@ -3,6 +3,7 @@ when opacity resets fall (the geometric losses pause after one)."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 from core.config import TrainConfig
@@ -60,6 +61,9 @@ class Marks:
     geometry_start: int
     multiview_start: int
     sh_full_start: int
+    # the first iteration without the silhouette term (phases.silhouette_until; the run's
+    # length when it stays on); not a boundary: ending one loss needs no evaluation
+    silhouette_stop: int
 
     @staticmethod
     def of(cfg: TrainConfig) -> Marks:
@@ -80,7 +84,7 @@ class Marks:
         mv = max(cfg.scaled(p.multiview_start), geo)
         if p.multiview_start > p.geometry_start:
             mv = max(mv, geo + min(p.min_geometry_iterations, n // 6))
-        return Marks(geo, mv, cfg.scaled(p.sh_full_start))
+        return Marks(geo, mv, cfg.scaled(p.sh_full_start), math.ceil(p.silhouette_until * n))
 
     def boundaries(self) -> list[int]:
         """Iterations at which the phase changes (checkpoint and evaluation points)."""
@@ -135,7 +139,7 @@ def phase_at(
         and ab.silhouette
         and silhouette_planned
         and not paused
-        and iteration < cfg.phases.silhouette_until * cfg.iterations,
+        and iteration < m.silhouette_stop,
         one_sided=ab.one_sided,
         grazing=ab.grazing_opacity,
         lowpass=cfg.lowpass_2d,
