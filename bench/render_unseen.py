@@ -189,11 +189,14 @@ def focal_px(size: int) -> float:
     return 0.5 * size / math.tan(0.5 * CAMERA_ANGLE_X)
 
 
-def fibonacci_cameras(n: int, phase: float) -> list[np.ndarray]:
-    """Camera-to-world (OpenGL: looks down −Z, +Y up) on the dev data's Fibonacci sphere."""
+def fibonacci_cameras(n: int, phase: float, *, upper: bool = False) -> list[np.ndarray]:
+    """Camera-to-world (OpenGL: looks down −Z, +Y up) on the dev data's Fibonacci sphere;
+    ``upper``: on its upper half only (z in (0, 1)), the layout of NeRF-synthetic /
+    Shiny Blender and of a turntable photographed from above, where the underside is
+    never seen."""
     out = []
     for i in range(n):
-        z = 1.0 - (2 * i + 1) / n
+        z = 1.0 - (i + 0.5) / n if upper else 1.0 - (2 * i + 1) / n
         phi = i * GOLDEN_ANGLE + phase
         s = math.sqrt(max(0.0, 1.0 - z * z))
         eye = RADIUS * np.array([s * math.cos(phi), s * math.sin(phi), z])
@@ -364,7 +367,7 @@ def seen_by(
 
 def render_scene(
     out: Path, preset: str, envmaps: Path, *, size: int, n_train: int, n_test: int, spp: int,
-    variant: str, seed: int = 0,
+    variant: str, seed: int = 0, upper: bool = False,
 ) -> dict[str, Any]:  # fmt: skip
     spec = dict(PRESETS[preset])
     out.mkdir(parents=True, exist_ok=True)
@@ -382,8 +385,8 @@ def render_scene(
     env, _ = read_image_array(src)
     shift = round(spec["envmap_turn_deg"] / 360.0 * env.shape[1])
     write_image(out / "envmap.exr", np.roll(env[..., :3], shift, axis=1), encode_srgb=False)
-    train_cams = fibonacci_cameras(n_train, 0.0)
-    test_cams = fibonacci_cameras(n_test, TEST_PHASE)
+    train_cams = fibonacci_cameras(n_train, 0.0, upper=upper)
+    test_cams = fibonacci_cameras(n_test, TEST_PHASE, upper=upper)
     # Exposure as the dev data chose it (about 1 / the 90th percentile of the object's
     # linear values at scale 1), per pixel on its brightest channel so a coloured
     # object clips about as often as a grey one; from a cheap pass over every train
@@ -442,6 +445,7 @@ def render_scene(
             "resolution": [size, size],
             "n_train": n_train,
             "n_test": n_test,
+            "cameras": "upper hemisphere" if upper else "sphere",
             "radius": RADIUS,
             "camera_angle_x": CAMERA_ANGLE_X,
             "spp": spp,
@@ -488,10 +492,14 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--spp", type=int, default=1024)
     ap.add_argument("--variant", default="llvm_ad_rgb")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument(
+        "--upper", action="store_true",
+        help="cameras on the upper half of the Fibonacci sphere only (the underside unseen)",
+    )  # fmt: skip
     a = ap.parse_args(argv)
     meta = render_scene(
         a.out, a.preset, a.envmaps, size=a.size, n_train=a.n_train, n_test=a.n_test,
-        spp=a.spp, variant=a.variant, seed=a.seed,
+        spp=a.spp, variant=a.variant, seed=a.seed, upper=a.upper,
     )  # fmt: skip
     print(
         json.dumps(

@@ -37,6 +37,18 @@ def test_cameras_sit_on_the_sphere_looking_at_the_origin_with_z_up() -> None:
         assert rot[2, 1] >= 0.0  # +Y up in the image
 
 
+def test_upper_cameras_cover_the_upper_half_evenly_and_never_the_underside() -> None:
+    train = fibonacci_cameras(64, 0.0, upper=True)
+    heights = np.array([c2w[2, 3] / 4.0 for c2w in train])
+    assert heights.min() > 0.0 and heights.max() < 1.0  # none below the equator, none at the pole
+    # evenly in z (equal areas of the hemisphere): half the views above z = 0.5
+    assert int((heights > 0.5).sum()) == 32
+    for c2w in train + fibonacci_cameras(16, TEST_PHASE, upper=True):
+        rot, eye = c2w[:3, :3], c2w[:3, 3]
+        assert np.linalg.norm(eye) == pytest.approx(4.0)
+        assert np.allclose(-rot[:, 2], -eye / 4.0)
+
+
 @pytest.mark.skipif(not SHARED.is_dir(), reason="needs ../shared/data")
 @pytest.mark.parametrize(("split", "n", "phase"), [("train", 64, 0.0), ("test", 16, TEST_PHASE)])
 def test_cameras_are_the_dev_datas(split: str, n: int, phase: float) -> None:
