@@ -6,7 +6,10 @@ Eq. 9 gives each splat one reflection strength w_r for every angle; a real coat
 surface is seen edge-on, and the shortfall grows with 1 − cos θ. For every test view,
 over pixels inside the GT mask at least ``--inset`` pixels from its silhouette (so the
 alpha halo does not enter), this bins the signed and squared colour error by
-cos θ = |n_gt · ray| and reports the blended w_r and specular colour per bin.
+cos θ = |n_gt · ray| and reports the blended w_r and specular colour per bin, and the
+error of the model's own depth (Eq. 8, or Eq. 5 for that ablation) against the GT depth
+where both have one: Eq. 8's depth d = D / (N·r̃) turns a normal error into a depth error
+that grows toward grazing, which a capture that sees some parts only edge-on exposes.
 
     python -m bench.angle_error RUN --scene ../shared/data/spot_plastic
 """
@@ -29,18 +32,23 @@ COS_BINS = (0.0, 0.2, 0.4, 0.6, 0.8, 1.0001)
 
 
 def measure(model: TrainedModel, scene, root: Path, inset: float) -> dict:
-    cols: dict[str, list[np.ndarray]] = {k: [] for k in ("cos", "err", "wr", "spec", "gt")}
+    names = ("cos", "err", "wr", "spec", "gt", "derr")
+    cols: dict[str, list[np.ndarray]] = {k: [] for k in names}
     for v in scene.test:
         gt = load_ground_truth(root, v)
         if gt is None:
             continue
-        f = model.render(v.camera, ("final", "specular"))
+        f = model.render(v.camera, ("final", "specular", "depth"))
         img = f.image("final").cpu().double().numpy()
         ref = v.composited(model.background.cpu()).double().numpy()
         spec = f.image("specular").cpu().double().numpy()
         wr = f.gbuffer.w_r.cpu().double().numpy()
         mask = gt.mask.numpy()
         keep = ndimage.distance_transform_edt(mask) > inset
+        depth, valid = f.depth()
+        d = depth.detach().cpu().double().numpy()
+        ok = valid.cpu().numpy() & (gt.depth.numpy() > 0)
+        derr = np.where(ok, d - gt.depth.double().numpy(), np.nan)
         rays = v.camera.camera_rays(torch.float64, "cpu") @ v.camera.R.to(torch.float64)
         rays = rays / rays.norm(dim=-1, keepdim=True)
         n = gt.normal_world.double()
@@ -50,16 +58,24 @@ def measure(model: TrainedModel, scene, root: Path, inset: float) -> dict:
         cols["gt"].append(ref[keep])
         cols["spec"].append(spec[keep])
         cols["wr"].append(wr[keep])
-    cos, err, gtc, spec, wr = (np.concatenate(cols[k]) for k in ("cos", "err", "gt", "spec", "wr"))
-    bins = bin_by_cos(cos, err, gtc, wr, spec)
+        cols["derr"].append(derr[keep])
+    cos, err, gtc, spec, wr, derr = (np.concatenate(cols[k]) for k in names)
+    bins = bin_by_cos(cos, err, gtc, wr, spec, derr)
     return {"pixels": int(cos.size), "inset_px": inset, "by_cos": bins}
 
 
 def bin_by_cos(
-    cos: np.ndarray, err: np.ndarray, gt: np.ndarray, wr: np.ndarray, spec: np.ndarray
+    cos: np.ndarray,
+    err: np.ndarray,
+    gt: np.ndarray,
+    wr: np.ndarray,
+    spec: np.ndarray,
+    depth_err: np.ndarray | None = None,
 ) -> list[dict]:
     """Per bin of ``cos`` (M,): share of pixels and of squared error, PSNR, mean signed
-    error, GT level, w_r and specular; ``err``, ``gt``, ``spec`` are (M, 3)."""
+    error, GT level, w_r and specular; ``err``, ``gt``, ``spec`` are (M, 3). With
+    ``depth_err`` (M,; NaN where either depth is missing): its median signed and mean
+    absolute value (None in a bin without depths)."""
     sq = (err**2).mean(-1)
     total = float(sq.sum()) or 1.0
     bins = []
@@ -67,7 +83,7 @@ def bin_by_cos(
         s = (cos >= lo) & (cos < hi)
         if not s.any():
             continue
-        bins.append({
+        row = {
             "cos": f"[{lo:g}, {min(hi, 1):g})",
             "pixel_share": float(s.mean()),
             "sq_error_share": float(sq[s].sum() / total),
@@ -76,7 +92,12 @@ def bin_by_cos(
             "gt_level": float(gt[s].mean()),
             "w_r": float(wr[s].mean()),
             "specular": float(spec[s].mean()),
-        })  # fmt: skip
+        }
+        if depth_err is not None:
+            de = depth_err[s][np.isfinite(depth_err[s])]
+            row["depth_signed_median"] = float(np.median(de)) if de.size else None
+            row["depth_abs_mean"] = float(np.abs(de).mean()) if de.size else None
+        bins.append(row)
     return bins
 
 

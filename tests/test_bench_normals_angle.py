@@ -33,3 +33,16 @@ def test_bin_by_cos_reports_a_shortfall_at_grazing_only():
     assert by["[0, 0.2)"]["sq_error_share"] == 1.0
     assert by["[0.8, 1)"]["signed_error"] == 0.0 and by["[0.8, 1)"]["psnr"] == 120.0
     assert abs(by["[0.8, 1)"]["pixel_share"] - 0.5) < 1e-12
+
+
+def test_bin_by_cos_reports_depth_error_per_bin_and_skips_missing_depths():
+    cos = np.array([0.1, 0.1, 0.1, 0.5, 0.9, 0.9])
+    flat = np.zeros((6, 3))
+    depth_err = np.array([0.03, -0.01, np.nan, np.nan, 0.001, -0.003])
+    bins = bin_by_cos(cos, flat, flat + 0.5, np.zeros(6), flat, depth_err)
+    by = {b["cos"]: b for b in bins}
+    assert abs(by["[0, 0.2)"]["depth_signed_median"] - 0.01) < 1e-12  # NaN left out
+    assert abs(by["[0, 0.2)"]["depth_abs_mean"] - 0.02) < 1e-12
+    assert by["[0.4, 0.6)"]["depth_signed_median"] is None  # no depth in that bin
+    assert abs(by["[0.8, 1)"]["depth_abs_mean"] - 0.002) < 1e-12
+    assert "depth_abs_mean" not in bin_by_cos(cos, flat, flat, np.zeros(6), flat)[0]
