@@ -47,8 +47,7 @@ def measure(model: TrainedModel, scene, root: Path, inset: float) -> dict:
         keep = ndimage.distance_transform_edt(mask) > inset
         depth, valid = f.depth()
         d = depth.detach().cpu().double().numpy()
-        ok = valid.cpu().numpy() & (gt.depth.numpy() > 0)
-        derr = np.where(ok, d - gt.depth.double().numpy(), np.nan)
+        derr = np.where(valid.cpu().numpy() & mask, d - gt.depth.double().numpy(), np.nan)
         rays = v.camera.camera_rays(torch.float64, "cpu") @ v.camera.R.to(torch.float64)
         rays = rays / rays.norm(dim=-1, keepdim=True)
         n = gt.normal_world.double()
