@@ -363,6 +363,12 @@ class MeshCreate(BaseModel):
     simplify: int | None = Field(
         None, ge=4, le=100_000_000, description="quadric decimation to about this many faces"
     )
+    grazing_blend: bool = Field(
+        True,
+        description="fuse the splats' centre depth (Eq. 5) where a view sees the surface "
+        "obliquely (cos 0.6 to 0.3 ramp), the planar depth (Eq. 8) elsewhere; false: the "
+        "planar depth at every angle",
+    )
     asset: AssetCreate | None = Field(
         None,
         description="also bake a relightable asset from this mesh: asset.glb (glTF 2.0, +Y "

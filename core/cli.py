@@ -334,6 +334,13 @@ def _add_mesh_args(p: argparse.ArgumentParser) -> None:
         help="bound the distance field by the masks' hull, or not (default: the run's plan, "
         "which turns it on where the masks agree with each other: docs/benchmarks.md)",
     )
+    p.add_argument(
+        "--grazing-blend",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="fuse Eq. 5's centre depth where the surface is seen obliquely (cos 0.6 to 0.3 "
+        "ramp, default), or Eq. 8's planar depth at every angle (--no-grazing-blend)",
+    )
 
 
 def _set_threads(n: int | None) -> None:
@@ -374,6 +381,7 @@ def _cmd_mesh(args: argparse.Namespace) -> int:
             resolution=args.mesh_resolution or DEFAULT_RESOLUTION,
             carve=not args.no_carve,
             hull=args.hull,
+            grazing_blend=args.grazing_blend,
             keep_fraction=args.keep_fraction,
             color=args.color,
             simplify=args.simplify,
@@ -410,6 +418,7 @@ def _cmd_eval(args: argparse.Namespace) -> int:
         trunc=args.trunc,
         mesh_resolution=args.mesh_resolution,
         hull=args.hull,
+        grazing_blend=args.grazing_blend,
         remesh=args.remesh,
         device=args.device,
         backend=args.backend,
@@ -449,6 +458,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             "trunc": args.trunc,
             "mesh_resolution": args.mesh_resolution,
             "hull": args.hull,
+            "grazing_blend": args.grazing_blend,
         },
         command=_bench_command(args),
         retime_fps=args.retime_fps,
@@ -476,6 +486,8 @@ def _bench_command(args: argparse.Namespace) -> str:
             parts.append(f"{flag} {value}")
     if args.hull is not None:
         parts.append("--hull" if args.hull else "--no-hull")
+    if not args.grazing_blend:
+        parts.append("--no-grazing-blend")
     if args.retime_fps:
         parts.append("--retime-fps")
     return " ".join(parts)

@@ -62,6 +62,13 @@ def test_mesh_commands_follow_the_plan_unless_told() -> None:
     bench = ["bench", "s", "--budget", "10"]
     assert "hull" not in _bench_command(p.parse_args(bench))
     assert _bench_command(p.parse_args([*bench, "--no-hull"])).endswith("--no-hull")
+    for cmd in (["mesh", "r"], ["eval", "r"], bench):  # the mesher's oblique-pixel depth
+        assert p.parse_args(cmd).grazing_blend is True
+        assert p.parse_args([*cmd, "--no-grazing-blend"]).grazing_blend is False
+    assert "--no-grazing-blend" not in _bench_command(p.parse_args(bench))
+    assert _bench_command(p.parse_args([*bench, "--no-grazing-blend"])).endswith(
+        "--no-grazing-blend"
+    )
 
 
 def test_bench_cli_prints_the_share_of_a_scene_on_disk(tmp_path, capsys) -> None:  # type: ignore[no-untyped-def]

@@ -366,6 +366,7 @@ def cmd_mesh(args: argparse.Namespace) -> int:
             "voxel": args.voxel,
             "color": args.color,
             "simplify": args.simplify,
+            "grazing_blend": args.grazing_blend,
         }.items()
         if v is not None
     }
@@ -513,6 +514,12 @@ def add_commands(parser: argparse.ArgumentParser, prog: str) -> None:
     p.add_argument("--voxel", type=float, help="voxel size in scene units (instead)")
     p.add_argument("--color", choices=("base", "radiance"), help="vertex colour (base)")
     p.add_argument("--simplify", type=int, help="decimate to about this many faces")
+    p.add_argument(
+        "--grazing-blend",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="centre depth where the surface is seen obliquely (the server's default: on)",
+    )
     _wait_options(p)
 
 

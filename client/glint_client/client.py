@@ -361,9 +361,9 @@ class Client:
         **params: Any,
     ) -> Job:
         """Extract another mesh from a succeeded training job (``resolution``, ``voxel``,
-        ``trunc``, ``color``, ``keep_fraction``, ``simplify``; ``asset={...}`` also bakes
-        a relightable asset: ``faces``, ``texture_size``, ``views``, ``occlusion``); a job
-        of its own. ``webhook`` as for :meth:`create_job`."""
+        ``trunc``, ``color``, ``keep_fraction``, ``simplify``, ``grazing_blend``;
+        ``asset={...}`` also bakes a relightable asset: ``faces``, ``texture_size``,
+        ``views``, ``occlusion``); a job of its own. ``webhook`` as for :meth:`create_job`."""
         hook = _with_secret(webhook)
         body = {**params, **({"webhook": hook} if hook is not None else {})}
         job = cast(Job, self._create(f"/v1/jobs/{job_id}/meshes", body, idempotency_key))

@@ -134,6 +134,7 @@ def ensure_mesh(
     resolution: int | None = None,
     hull: bool | None = None,
     remesh: bool = False,
+    grazing_blend: bool = True,
 ) -> tuple[trimesh.Trimesh, dict[str, Any]]:
     """The run's TSDF mesh: reuse mesh.ply when it was made from this checkpoint with
     the same settings, else extract it from ``views`` (and write mesh.ply/.obj/.glb);
@@ -146,18 +147,20 @@ def ensure_mesh(
     hull = planned_hull(model) if hull is None else hull
     request = {
         "voxel": voxel, "trunc": trunc, "resolution": resolution or DEFAULT_RESOLUTION,
-        "hull": hull,
+        "hull": hull, "grazing_blend": grazing_blend,
     }  # fmt: skip
     info_path = out / "mesh.json"
     if not remesh and info_path.is_file() and (out / "mesh.ply").is_file():
         info = json.loads(info_path.read_text())
-        made = {"hull": False, **(info.get("request") or {})}  # older records: no hull
+        # older records: no hull, planar depth at every angle
+        made = {"hull": False, "grazing_blend": False, **(info.get("request") or {})}
         if info.get("iteration") == model.iteration and made == request:
             mesh = trimesh.load(out / "mesh.ply", process=False, force="mesh")
             return mesh, info
     mesh, info = mesh_model(
-        model, views, out, voxel=voxel, trunc=trunc, resolution=request["resolution"], hull=hull
-    )
+        model, views, out, voxel=voxel, trunc=trunc, resolution=request["resolution"],
+        hull=hull, grazing_blend=grazing_blend,
+    )  # fmt: skip
     info["request"] = request
     info_path.write_text(json.dumps(info, indent=2))
     return mesh, info
@@ -180,6 +183,7 @@ def evaluate_run(
     mesh_resolution: int | None = None,
     hull: bool | None = None,
     remesh: bool = False,
+    grazing_blend: bool = True,
     fps_frames: int | None = None,
     device: str | None = None,
     backend: str | None = None,
@@ -217,7 +221,7 @@ def evaluate_run(
     gt = load_gt_points(scene.root)
     mesh, mesh_info = ensure_mesh(
         model, scene.train, run, voxel=voxel, trunc=trunc, resolution=mesh_resolution,
-        hull=hull, remesh=remesh,
+        hull=hull, remesh=remesh, grazing_blend=grazing_blend,
     )  # fmt: skip
     ev["mesh"] = {k: mesh_info.get(k) for k in ("vertices", "faces", "watertight", "components")}
     ev["mesh"]["fusion"] = mesh_info.get("fusion")

@@ -42,6 +42,7 @@ from core.meshing.tsdf import (
     observation_weight,
 )
 from core.model.trained import TrainedModel
+from core.render.depth_geometry import grazing_blend as grazing_blend_depth
 from core.scene.imageio import linear_to_srgb
 from core.scene.views import View
 
@@ -49,6 +50,11 @@ MESH_COLORS = ("base", "radiance")
 MESH_FILES = ("mesh.ply", "mesh.obj", "mesh.glb")
 PREVIEW_FILE = "mesh_preview.png"
 BOUNDS_MIN_SIDE = 256  # views at least this large are fitted to the grid at ¼ resolution
+# Eq. 8's depth counts fully where the surface faces the pixel within acos 0.6 (53°) and
+# gives way linearly to Eq. 5's centre depth, wholly at acos 0.3 (73°). Why: on a held-out
+# knot shot from above Eq. 8's depth error was 0.6× Eq. 5's at cos 0.6-0.8 and 1.5× it
+# below cos 0.4, where such a capture sees the undersides (docs/benchmarks.md, 2026-11-30).
+GRAZING_BLEND_COS = (0.3, 0.6)
 
 Progress = Callable[[str, int, int], None]
 
@@ -66,13 +72,16 @@ def model_depth_frame(
     scale: float = 1.0,
     weighted: bool = True,
     hull: bool = False,
+    grazing_blend: bool = True,
 ) -> DepthFrame:
     """The depth the model uses and, unless ``color`` is None, the surface colour of one
     view (``base`` or ``radiance``, un-premultiplied), masked as fusion needs, with
     each pixel's fusion weight (incidence of the rendered normal, occlusion edges)
     unless ``weighted`` is False (a frame read only for its points: bounds, the narrow
     band, the run record's surface probe; ~50 ms a frame at 800² saved), and with
-    ``hull`` its mask's hull distances (tsdf.mask_hull_distance) when it has a mask."""
+    ``hull`` its mask's hull distances (tsdf.mask_hull_distance) when it has a mask.
+    ``grazing_blend``: a planar model's depth leans toward Eq. 5's at oblique pixels
+    (:func:`core.render.depth_geometry.grazing_blend`, :data:`GRAZING_BLEND_COS`)."""
     camera = view.camera if scale == 1.0 else view.camera.scaled(scale)
     channels = {"base": ("base", "depth"), "radiance": ("final", "depth"), None: ("depth",)}
     if color not in channels:
@@ -80,6 +89,11 @@ def model_depth_frame(
     bg = model.background
     frame = model.render(camera, channels[color], background=bg)
     depth, valid = frame.depth()
+    if grazing_blend and frame.planar_depth:
+        gb = frame.gbuffer
+        depth = grazing_blend_depth(
+            depth, valid, gb.center_depth, gb.normal, camera, GRAZING_BLEND_COS
+        )
     alpha = frame.gbuffer.alpha
     valid = valid & (alpha > SURFACE_ALPHA)
     if view.mask is not None:
@@ -173,6 +187,7 @@ def mesh_model(
     preview: bool = True,
     progress: Progress | None = None,
     should_stop: Callable[[], bool] | None = None,
+    grazing_blend: bool = True,
 ) -> tuple[trimesh.Trimesh, dict[str, Any]]:
     """Mesh of a trained model seen from ``views`` (its training views): fuse, extract,
     clean, and write into ``out`` (the run folder), all files or none.
@@ -181,7 +196,7 @@ def mesh_model(
     ``band``, ``integrate``) and the last steps (``extract``, ``write``);
     ``should_stop()`` is asked between views and raises :class:`MeshCancelledError`.
     ``hull``: bound the distance field by the masks' hull; None: as the run's plan says
-    (:func:`planned_hull`).
+    (:func:`planned_hull`). ``grazing_blend``: see :func:`model_depth_frame`.
     """
     hull = planned_hull(model) if hull is None else hull
     if model.center is None or model.radius is None:
@@ -206,11 +221,20 @@ def mesh_model(
     t0 = time.perf_counter()
     vol, params = fuse_frames(
         len(views),
-        lambda i: model_depth_frame(model, views[i], color=color, hull=hull),
-        bounds_frame_at=lambda i: model_depth_frame(
-            model, views[i], color=None, scale=bounds_scale, weighted=False
+        lambda i: model_depth_frame(
+            model, views[i], color=color, hull=hull, grazing_blend=grazing_blend
         ),
-        band_frame_at=lambda i: model_depth_frame(model, views[i], color=None, weighted=False),
+        bounds_frame_at=lambda i: model_depth_frame(
+            model,
+            views[i],
+            color=None,
+            scale=bounds_scale,
+            weighted=False,
+            grazing_blend=grazing_blend,
+        ),
+        band_frame_at=lambda i: model_depth_frame(
+            model, views[i], color=None, weighted=False, grazing_blend=grazing_blend
+        ),
         center=model.center,
         radius=float(model.radius),
         voxel=voxel,
@@ -234,6 +258,7 @@ def mesh_model(
         "files": list(MESH_FILES) + ([PREVIEW_FILE] if preview else []),
         "iteration": model.iteration,
         "color": color,
+        "grazing_blend_cos": list(GRAZING_BLEND_COS) if grazing_blend else None,
         "vertices": len(mesh.vertices),
         "faces": len(mesh.faces),
         "watertight": bool(mesh.is_watertight) if len(mesh.faces) else False,

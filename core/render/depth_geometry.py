@@ -37,6 +37,33 @@ def facing_view(normal: Tensor, camera: Camera, max_deg: float = DEPTH_FACING_DE
     return (dot >= math.cos(math.radians(max_deg)) * norm) & (norm > 0)
 
 
+def grazing_blend(
+    planar: Tensor,
+    valid: Tensor,
+    centre: Tensor,
+    normal: Tensor,
+    camera: Camera,
+    cos_range: tuple[float, float],
+) -> Tensor:
+    """Eq. 8's depth moved toward Eq. 5's where the surface is seen obliquely (H, W).
+
+    With c = |cos| between a pixel's blended normal and its ray, the weight of the planar
+    depth ramps linearly from 0 at ``cos_range[0]`` to 1 at ``cos_range[1]``. Why: Eq. 8
+    divides by N·r̃, so a normal error δ becomes a relative depth error of about
+    tan θ · δ; the blended centre depth of Eq. 5 has no such factor. Only ``valid``
+    pixels change (the planar depth is kept elsewhere), and only where ``centre`` is
+    positive."""
+    lo, hi = cos_range
+    if not 0.0 <= lo < hi <= 1.0:
+        raise ValueError(f"cos_range must satisfy 0 <= lo < hi <= 1, got {cos_range}")
+    rays = camera.camera_rays(normal.dtype, normal.device)
+    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
+    cos = (normal * rays).sum(-1).abs() / norm.clamp_min(1e-30)
+    w = ((cos - lo) / (hi - lo)).clamp(0.0, 1.0).to(planar.dtype)
+    blend = w * planar + (1.0 - w) * centre.to(planar.dtype)
+    return torch.where(valid & (centre > 0), blend, planar)
+
+
 def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:
     """Camera-space points (H, W, 3) = z-depth · K⁻¹(u, v, 1)."""
     return depth[..., None] * camera.camera_rays(depth.dtype, depth.device)

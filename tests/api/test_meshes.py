@@ -129,8 +129,11 @@ def test_reextraction_with_radiance_colour_and_listing(server: LiveServer, train
     with server.client(key) as c:
         r = c.post(
             f"/v1/jobs/{job_id}/meshes",
-            json={"resolution": 40, "color": "radiance", "keep_fraction": 0.0, "simplify": 200},
-        )
+            json={
+                "resolution": 40, "color": "radiance", "keep_fraction": 0.0, "simplify": 200,
+                "grazing_blend": False,
+            },
+        )  # fmt: skip
         assert r.status_code == 201, r.text
         mesh_job = r.json()
         assert mesh_job["kind"] == "mesh" and mesh_job["parent_id"] == job_id
@@ -139,6 +142,7 @@ def test_reextraction_with_radiance_colour_and_listing(server: LiveServer, train
         assert done["progress"] == 1.0 and done["phase"] == "mesh"
         info = json.loads(c.get(f"/v1/jobs/{done['id']}/artifacts/mesh.json").content)
         assert info["color"] == "radiance" and info["fusion"]["shape"][0] <= 41
+        assert info["grazing_blend_cos"] is None  # planar depth at every angle, as asked
         mesh = _load(c, done["id"], "mesh.ply")
         assert len(mesh.faces) <= 220  # simplified to about 200 faces
         listed = c.get(f"/v1/jobs/{job_id}/meshes").json()
@@ -260,6 +264,7 @@ def test_another_owner_sees_nothing(server: LiveServer, trained) -> None:  # typ
         ({"voxel": -1}, "body.voxel"),
         ({"keep_fraction": 2}, "body.keep_fraction"),
         ({"simplify": 1}, "body.simplify"),
+        ({"grazing_blend": "sometimes"}, "body.grazing_blend"),
         ({"levels": 3}, "body.levels"),
         ({"asset": {"texture_size": 100}}, "body.asset.texture_size"),
         ({"asset": {"texture_size": 8192}}, "body.asset.texture_size"),

@@ -97,3 +97,14 @@ def test_exit_codes_for_bad_key_unreachable_server_and_usage(
     with pytest.raises(SystemExit) as usage:
         main(["submit", "--iterations", "x"])
     assert usage.value.code == EXIT_USAGE
+
+
+def test_mesh_flags_reach_the_request_only_when_given() -> None:
+    """``glint remote mesh``: the grazing blend is the server's default unless a flag
+    says otherwise (None is left out of the request body)."""
+    from glint_client.cli import build_parser
+
+    p = build_parser()
+    assert p.parse_args(["mesh", "job_x"]).grazing_blend is None
+    assert p.parse_args(["mesh", "job_x", "--no-grazing-blend"]).grazing_blend is False
+    assert p.parse_args(["mesh", "job_x", "--grazing-blend"]).grazing_blend is True
