@@ -7,7 +7,6 @@ import math
 import pytest
 import torch
 
-from core.meshing.mesh import GRAZING_BLEND_COS, model_depth_frame
 from core.render.depth_geometry import grazing_blend
 from core.scene.synthetic import fibonacci_cameras
 
@@ -53,38 +52,3 @@ def test_invalid_pixels_and_missing_centre_depth_keep_the_planar_depth() -> None
     for bad in ((0.8, 0.4), (-0.1, 0.5), (0.5, 1.5), (0.5, 0.5)):
         with pytest.raises(ValueError, match="cos_range"):
             grazing_blend(planar, valid, centre, _normal_at(cam, 0.5), cam, bad)
-
-
-def test_mesher_blends_only_where_the_surface_is_oblique(tmp_path) -> None:  # type: ignore[no-untyped-def]
-    from core.config import config_from_dict
-    from core.model.run_folder import open_run
-    from core.scene.synthetic import write_synthetic_scene
-    from core.training.run import train_scene
-
-    scene = write_synthetic_scene(tmp_path / "s", "sphere", "diffuse", n_train=4, n_test=1, size=32)
-    cfg = config_from_dict(
-        {"iterations": 30, "init_points": 800, "envmap_resolution": 8,
-         "densify": {"enabled": False}, "outputs": {"mesh": False}}
-    )  # fmt: skip
-    train_scene(scene, tmp_path / "run", cfg)
-    model, sc = open_run(tmp_path / "run")
-    view = sc.train[0]
-    plain = model_depth_frame(model, view, color=None, grazing_blend=False)
-    blend = model_depth_frame(model, view, color=None)
-    frame = model.render(view.camera, ("depth",))
-    depth, _ = frame.depth()
-    assert torch.equal(plain.depth, depth)
-    assert torch.equal(plain.valid, blend.valid)
-    gb = frame.gbuffer
-    rays = view.camera.camera_rays(gb.normal.dtype, gb.normal.device)
-    norm = gb.normal.norm(dim=-1) * rays.norm(dim=-1)
-    cos = (gb.normal * rays).sum(-1).abs() / norm.clamp_min(1e-30)
-    lo, hi = GRAZING_BLEND_COS
-    face_on = plain.valid & (cos >= hi)  # (few this early in training)
-    oblique = plain.valid & (cos < hi - 0.05)
-    assert oblique.any()
-    assert torch.equal(blend.depth[face_on], plain.depth[face_on])
-    w = ((cos - lo) / (hi - lo)).clamp(0, 1)
-    expect = w * plain.depth + (1 - w) * gb.center_depth
-    torch.testing.assert_close(blend.depth[oblique], expect[oblique])
-    assert (blend.depth[oblique] != plain.depth[oblique]).any()

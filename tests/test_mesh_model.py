@@ -14,6 +14,7 @@ from PIL import Image
 
 from core.config import config_from_dict
 from core.meshing.mesh import (
+    GRAZING_BLEND_COS,
     MESH_FILES,
     PREVIEW_FILE,
     MeshCancelledError,
@@ -189,3 +190,29 @@ def test_eval_reuses_a_mesh_only_with_the_same_hull_setting(run, tmp_path: Path)
     _, hulled = ensure_mesh(model, scene.train, tmp_path, resolution=32, hull=True)
     assert "marker" not in hulled and hulled["fusion"]["hull"] is True
     assert json.loads(info_path.read_text())["request"]["hull"] is True
+
+
+def test_mesher_blends_only_where_the_surface_is_oblique(run) -> None:  # type: ignore[no-untyped-def]
+    """Eq. 8's depth where the surface faces the view, the ramp toward Eq. 5's at oblique
+    pixels (core.render.depth_geometry.grazing_blend); the same pixels either way."""
+    model, scene = run
+    view = scene.train[0]
+    plain = model_depth_frame(model, view, color=None, grazing_blend=False)
+    blend = model_depth_frame(model, view, color=None)
+    frame = model.render(view.camera, ("depth",))
+    depth, _ = frame.depth()
+    assert torch.equal(plain.depth, depth)
+    assert torch.equal(plain.valid, blend.valid)
+    gb = frame.gbuffer
+    rays = view.camera.camera_rays(gb.normal.dtype, gb.normal.device)
+    norm = gb.normal.norm(dim=-1) * rays.norm(dim=-1)
+    cos = (gb.normal * rays).sum(-1).abs() / norm.clamp_min(1e-30)
+    lo, hi = GRAZING_BLEND_COS
+    face_on = plain.valid & (cos >= hi)  # (few this early in training)
+    oblique = plain.valid & (cos < hi - 0.05)
+    assert oblique.any()
+    assert torch.equal(blend.depth[face_on], plain.depth[face_on])
+    w = ((cos - lo) / (hi - lo)).clamp(0, 1)
+    expect = w * plain.depth + (1 - w) * gb.center_depth
+    torch.testing.assert_close(blend.depth[oblique], expect[oblique])
+    assert (blend.depth[oblique] != plain.depth[oblique]).any()

@@ -17,6 +17,7 @@ import json
 import shutil
 import time
 from collections.abc import Callable, Sequence
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -219,22 +220,12 @@ def mesh_model(
     small = min(views[0].camera.height, views[0].camera.width) < BOUNDS_MIN_SIDE
     bounds_scale = 1.0 if small else 0.25
     t0 = time.perf_counter()
+    frame = partial(model_depth_frame, model, grazing_blend=grazing_blend)
     vol, params = fuse_frames(
         len(views),
-        lambda i: model_depth_frame(
-            model, views[i], color=color, hull=hull, grazing_blend=grazing_blend
-        ),
-        bounds_frame_at=lambda i: model_depth_frame(
-            model,
-            views[i],
-            color=None,
-            scale=bounds_scale,
-            weighted=False,
-            grazing_blend=grazing_blend,
-        ),
-        band_frame_at=lambda i: model_depth_frame(
-            model, views[i], color=None, weighted=False, grazing_blend=grazing_blend
-        ),
+        lambda i: frame(views[i], color=color, hull=hull),
+        bounds_frame_at=lambda i: frame(views[i], color=None, scale=bounds_scale, weighted=False),
+        band_frame_at=lambda i: frame(views[i], color=None, weighted=False),
         center=model.center,
         radius=float(model.radius),
         voxel=voxel,

@@ -14,6 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from core.render.fresnel import cos_view
 from core.scene.cameras import Camera
 
 # Depth-based losses trust a pixel only where its surface faces the view within this
@@ -56,10 +57,7 @@ def grazing_blend(
     lo, hi = cos_range
     if not 0.0 <= lo < hi <= 1.0:
         raise ValueError(f"cos_range must satisfy 0 <= lo < hi <= 1, got {cos_range}")
-    rays = camera.camera_rays(normal.dtype, normal.device)
-    norm = normal.norm(dim=-1) * rays.norm(dim=-1)
-    cos = (normal * rays).sum(-1).abs() / norm.clamp_min(1e-30)
-    w = ((cos - lo) / (hi - lo)).clamp(0.0, 1.0).to(planar.dtype)
+    w = ((cos_view(normal, camera) - lo) / (hi - lo)).clamp(0.0, 1.0).to(planar.dtype)
     blend = w * planar + (1.0 - w) * centre.to(planar.dtype)
     return torch.where(valid & (centre > 0), blend, planar)
 
