@@ -216,6 +216,13 @@ class Ablation(_Strict):
         "True: only pixels whose surface faces the view within 60° (Eq. 8's depth is "
         "ill-conditioned edge-on; core/render/depth_geometry.py)",
     )
+    oblique_depth: bool = Field(
+        True,
+        description="False: the depth losses never take oblique pixels; True: where the "
+        "capture never faces some side of the object (views from above or the front only), "
+        "the scene plan lets L_single also read pixels seen 60-80° from face-on, through "
+        "Eq. 5's centre depth (core/training/view_coverage.py)",
+    )
     silhouette_holds_normals: bool = Field(
         True,
         description="True: the silhouette term's gradient moves the splats and their "

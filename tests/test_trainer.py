@@ -72,7 +72,9 @@ def test_full_run_writes_every_output(tiny_scene, tmp_path):
         "silhouette",
         "roughness",
         "hull",
+        "oblique_depth",
     }
+    assert plan["decisions"]["oblique_depth"]["value"] is False  # a sphere of views
     assert not plan["decisions"]["envmap"]["pending"]
     # roughness is decided with the env map: on with it, off without it
     rough = plan["decisions"]["roughness"]
@@ -248,6 +250,49 @@ def test_depth_losses_use_only_pixels_facing_the_view(tiny_scene, tmp_path, monk
             assert not bool((valid & ~faces).any())
     # a sphere always shows a rim seen edge-on: the switch has something to leave out
     assert (grazing == 0) if facing else (grazing > 0)
+
+
+def test_planned_oblique_depth_widens_l_single_to_80_degrees(tiny_scene, tmp_path, monkeypatch):
+    """With the plan's oblique_depth on (here by override: a sphere of views plans it
+    off), L_single also reads pixels 60-80° from face-on, never beyond, and the pixels
+    facing the view keep Eq. 8's depth."""
+    import core.training.trainer as tr
+    from core.render.depth_geometry import OBLIQUE_DEPTH_MAX_DEG, facing_view
+
+    seen: list[tuple] = []
+    real_single, real_oblique = tr.single_view_loss, tr.oblique_depth
+
+    def oblique(gb, planar, valid, camera):
+        depth, used = real_oblique(gb, planar, valid, camera)
+        faces = facing_view(gb.normal, camera)
+        same = bool(torch.equal(depth[faces & valid], planar[faces & valid]))
+        seen.append(
+            (used.clone(), faces, facing_view(gb.normal, camera, OBLIQUE_DEPTH_MAX_DEG), same)
+        )
+        return depth, used
+
+    def single(normal, depth, valid, camera, weight=None, **kw):
+        assert seen and torch.equal(valid, seen[-1][0])  # L_single reads what oblique gave
+        return real_single(normal, depth, valid, camera, weight, **kw)
+
+    monkeypatch.setattr(tr, "oblique_depth", oblique)
+    monkeypatch.setattr(tr, "single_view_loss", single)
+    cfg = config_from_dict({**TINY, "plan_overrides": {"oblique_depth": True}})
+    t = Trainer(tiny_scene, cfg, tmp_path)
+    t.setup(resume=False)
+    t.train()
+    assert t.plan.oblique_depth.value is True and seen
+    oblique_pixels = 0
+    for used, faces, within, same in seen:
+        assert same and not bool((used & ~within).any())
+        oblique_pixels += int((used & ~faces).sum())
+    assert oblique_pixels > 0  # the sphere's rim: pixels the facing rule leaves out
+    planned = plan_of(tmp_path)
+    assert planned["oblique_depth"]["value"] is True and planned["oblique_depth"]["overridden"]
+
+
+def plan_of(run) -> dict:  # type: ignore[no-untyped-def]
+    return json.loads((run / "plan.json").read_text())["decisions"]
 
 
 @pytest.mark.parametrize("held", [True, False])

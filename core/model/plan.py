@@ -16,7 +16,10 @@ from typing import Any
 from core.config import TrainConfig
 
 # Parts a user may override with ``plan_overrides``; every decision of a plan.
-OVERRIDABLE = ("envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness", "hull")
+OVERRIDABLE = (
+    "envmap", "sh_degree", "multi_view", "mesh", "silhouette", "roughness", "hull",
+    "oblique_depth",
+)  # fmt: skip
 DECISION_KEYS = (
     "envmap",
     "envmap_resolution",
@@ -27,6 +30,7 @@ DECISION_KEYS = (
     "silhouette",
     "roughness",
     "hull",
+    "oblique_depth",
 )
 # The paper's cube-map face size (6 × 128 × 128).
 PAPER_ENVMAP_RESOLUTION = 128
@@ -66,6 +70,10 @@ class ScenePlan:
     )
     # meshes bounded by the masks' hull (core.training.mask_agreement says when)
     hull: Decision = field(
+        default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
+    )
+    # L_single also on oblique pixels, where some side is never faced (core.training.planner)
+    oblique_depth: Decision = field(
         default_factory=lambda: Decision(False, "not planned (a run from before it existed)")
     )
 

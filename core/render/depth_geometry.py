@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -16,6 +17,9 @@ from torch import Tensor
 
 from core.render.fresnel import cos_view
 from core.scene.cameras import Camera
+
+if TYPE_CHECKING:  # the G-buffer module renders; this one only reads its maps
+    from core.render.gbuffer import GBuffer
 
 # Depth-based losses trust a pixel only where its surface faces the view within this
 # angle. Why: Eq. 8's depth d = D / (N·r̃) turns a normal error δ into a relative depth
@@ -26,6 +30,15 @@ from core.scene.cameras import Camera
 # leave the silhouettes' alpha twice as wide as with the centre depth of Eq. 5 and cost
 # 0.8 dB of held-out PSNR at the same Chamfer distance.
 DEPTH_FACING_DEG = 60.0
+# Where a capture never faces some side (core.training.view_coverage), L_single also
+# reads pixels up to this angle from face-on, with a depth that moves from Eq. 8's at
+# cos θ = cos(DEPTH_FACING_DEG) (the facing pixels keep theirs) to Eq. 5's at 0.3 (the
+# mesher's lower knot, core.meshing.mesh.GRAZING_BLEND_COS): measured on a held-out
+# knot shot from above (2026-11-30), Eq. 8's depth error there was 1.5x Eq. 5's below
+# cos 0.4. Beyond 80° a pixel sees the surface edge-on and its depth mixes with the
+# silhouette's background, so it is left out.
+OBLIQUE_DEPTH_MAX_DEG = 80.0
+OBLIQUE_DEPTH_COS = (0.3, math.cos(math.radians(DEPTH_FACING_DEG)))
 
 
 def facing_view(normal: Tensor, camera: Camera, max_deg: float = DEPTH_FACING_DEG) -> Tensor:
@@ -60,6 +73,17 @@ def grazing_blend(
     w = ((cos_view(normal, camera) - lo) / (hi - lo)).clamp(0.0, 1.0).to(planar.dtype)
     blend = w * planar + (1.0 - w) * centre.to(planar.dtype)
     return torch.where(valid & (centre > 0), blend, planar)
+
+
+def oblique_depth(
+    gb: GBuffer, planar: Tensor, valid: Tensor, camera: Camera
+) -> tuple[Tensor, Tensor]:
+    """(depth, valid) of L_single where the plan adds oblique pixels: Eq. 8's ``planar``
+    depth where the surface faces the view within DEPTH_FACING_DEG, moving to Eq. 5's
+    centre depth toward OBLIQUE_DEPTH_COS's lower end, over the ``valid`` pixels seen
+    within OBLIQUE_DEPTH_MAX_DEG of face-on."""
+    depth = grazing_blend(planar, valid, gb.center_depth, gb.normal, camera, OBLIQUE_DEPTH_COS)
+    return depth, valid & facing_view(gb.normal, camera, OBLIQUE_DEPTH_MAX_DEG)
 
 
 def depth_to_points(depth: Tensor, camera: Camera) -> Tensor:

@@ -22,12 +22,17 @@ import torch
 from core.config import ConfigError, TrainConfig
 from core.evaluation.metrics import to_display
 from core.model.plan import OVERRIDABLE, PAPER_ENVMAP_RESOLUTION, Decision, ScenePlan
-from core.render.depth_geometry import bilinear_lookup
+from core.render.depth_geometry import (
+    DEPTH_FACING_DEG,
+    OBLIQUE_DEPTH_MAX_DEG,
+    bilinear_lookup,
+)
 from core.render.gaussians import Gaussians
 from core.render.gbuffer import render_gbuffer
 from core.scene.cameras import Camera
 from core.scene.views import Scene, View
 from core.training.mask_agreement import MAX_UNSUPPORTED, unsupported_rim_share
+from core.training.view_coverage import unfaced_share
 
 # Two readings of view dependence, both "captured minus view-independent model" over
 # surface points seen by a view and its neighbour (sRGB units):
@@ -57,6 +62,11 @@ PROBE_MIN_ALPHA = 0.5
 # and learned speckle.
 PAPER_FOCAL_PX = 1111.1
 ENVMAP_AUTO_MIN, ENVMAP_AUTO_MAX = 8, 128
+# A capture "never faces some side" when more than this share of normal directions has
+# no view within DEPTH_FACING_DEG of face-on (core.training.view_coverage): above the
+# sampling's noise, far below the 5-13% of the upper-hemisphere, LLFF and NeRF-synthetic
+# layouts; a sphere of views scores 0.
+MAX_UNFACED = 0.01
 
 
 def decide_envmap(plan: ScenePlan, evidence: dict[str, Any], cfg: TrainConfig) -> None:
@@ -226,6 +236,7 @@ def plan_scene(scene: Scene, cfg: TrainConfig) -> ScenePlan:
         env, sh, mv, bg, mesh, [j for j, _ in nbs], envmap_resolution=plan_envmap_resolution(
             [float(c.intrinsics.fx) for c in cams], cfg), silhouette=silhouette,
         roughness=plan_roughness(cfg), hull=decide_hull(scene),
+        oblique_depth=decide_oblique_depth(scene, cfg),
     )  # fmt: skip
     _apply_overrides(plan, cfg)
     if not plan.envmap.pending:  # the user set the env map: no probe will decide roughness
@@ -256,6 +267,35 @@ def decide_multi_view(
         )
         return Decision(False, reason, evidence)
     return Decision(True, f"{with_neighbour}/{views} views have a neighbour", evidence)
+
+
+def decide_oblique_depth(scene: Scene, cfg: TrainConfig) -> Decision:
+    """L_single on oblique pixels too (60-80° from face-on, with Eq. 5's depth there)
+    where the capture never faces some side of the object: there the facing-only rule
+    leaves those sides with no depth loss at all, and Eq. 8's depth, which divides by
+    N·r̃, is least accurate exactly at the angles they are seen from. A sphere of views
+    faces every side, and there the extra pixels cost accuracy (teapot_gold CD +0.8%),
+    so it stays off. ``plan_overrides.oblique_depth`` overrides it."""
+    cams = torch.stack([v.camera.center for v in scene.train]) if scene.train else None
+    share = unfaced_share(cams, scene.center) if cams is not None else 1.0
+    evidence = {"unfaced_share": share, "max_unfaced": MAX_UNFACED}
+    if not (cfg.ablation.oblique_depth and cfg.ablation.planar_depth):
+        what = "oblique_depth" if cfg.ablation.planar_depth else "planar_depth (Eq. 5 depth)"
+        return Decision(False, f"switched off by the ablation config ({what})", evidence)
+    if not cfg.ablation.facing_depth:
+        return Decision(False, "the depth losses already read every angle", evidence)
+    measured = (
+        f"{share:.1%} of the surface's normal directions face no training view within "
+        f"{DEPTH_FACING_DEG:g}°"
+    )
+    if share > MAX_UNFACED:
+        return Decision(
+            True, f"{measured} (> {MAX_UNFACED:.0%}): L_single also reads the pixels seen "
+            f"{DEPTH_FACING_DEG:g}-{OBLIQUE_DEPTH_MAX_DEG:g}° from face-on, with Eq. 5's "
+            "depth there", evidence)  # fmt: skip
+    return Decision(
+        False, f"{measured} (≤ {MAX_UNFACED:.0%}): every side is faced by some view, "
+        "L_single stays on facing pixels", evidence)  # fmt: skip
 
 
 def decide_hull(scene: Scene) -> Decision:

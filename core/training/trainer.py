@@ -33,7 +33,7 @@ from core.model.trained import (
     scene_record,
 )
 from core.outputs.report import MetricsLog
-from core.render.depth_geometry import facing_view
+from core.render.depth_geometry import facing_view, oblique_depth
 from core.render.envmap import EnvMap
 from core.render.gaussians import UNTRAINED_KEYS, Gaussians
 from core.render.gbuffer import GBuffer, geometry_depth, render_gbuffer
@@ -533,8 +533,15 @@ class Trainer:
         if phase.single_view and cfg.loss.single_view > 0:
             with stage("single_view_loss"):
                 weight = edge_weight(target) if cfg.loss.single_view_edge_aware else None
+                sv_depth, sv_valid = depth, valid
+                if (
+                    self.plan.oblique_depth.value
+                    and phase.planar_depth
+                    and cfg.ablation.facing_depth
+                ):
+                    sv_depth, sv_valid = oblique_depth(gb, depth, sil_valid, view.camera)
                 terms["single_view"] = cfg.loss.single_view * single_view_loss(
-                    gb.normal, depth, valid, view.camera, weight,
+                    gb.normal, sv_depth, sv_valid, view.camera, weight,
                     same_surface=cfg.ablation.same_surface_normals,
                 )  # fmt: skip
         if sil_on:
