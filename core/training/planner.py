@@ -276,8 +276,8 @@ def decide_oblique_depth(scene: Scene, cfg: TrainConfig) -> Decision:
     N·r̃, is least accurate exactly at the angles they are seen from. A sphere of views
     faces every side, and there the extra pixels cost accuracy (teapot_gold CD +0.8%),
     so it stays off. ``plan_overrides.oblique_depth`` overrides it."""
-    cams = torch.stack([v.camera.center for v in scene.train]) if scene.train else None
-    share = unfaced_share(cams, scene.center) if cams is not None else 1.0
+    centres = [v.camera.center for v in scene.train]
+    share = unfaced_share(torch.stack(centres) if centres else torch.empty(0, 3), scene.center)
     evidence = {"unfaced_share": share, "max_unfaced": MAX_UNFACED}
     if not (cfg.ablation.oblique_depth and cfg.ablation.planar_depth):
         what = "oblique_depth" if cfg.ablation.planar_depth else "planar_depth (Eq. 5 depth)"

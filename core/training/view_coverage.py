@@ -44,7 +44,8 @@ def unfaced_share(
     c = camera_centres.detach().to(torch.float64).reshape(-1, 3)
     to_cam = c - target.detach().to(torch.float64).reshape(1, 3)
     norm = to_cam.norm(dim=-1, keepdim=True)
-    to_cam = to_cam[norm[:, 0] > 0] / norm[norm[:, 0] > 0]
+    away = norm[:, 0] > 0  # a camera at the target itself faces nothing
+    to_cam = to_cam[away] / norm[away]
     if to_cam.shape[0] == 0:
         return 1.0
     dirs = fibonacci_directions(samples)
